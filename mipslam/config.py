@@ -1,0 +1,421 @@
+"""Typed, frozen configuration: one dataclass per stage, loaded from YAML.
+
+* A YAML file may name ``inherit_from: other.yaml`` (or a list); paths are relative to the file.
+  Parents are merged first, the child overrides them key by key (deeply); cycles are an error.
+* ``--preset NAME`` overlays ``configs/NAME.yaml`` after the file; ``--set a.b=value`` overrides
+  come last (values parsed as YAML scalars/lists).
+* Unknown keys are rejected with the nearest valid key; values are type-checked and range-checked.
+* YAML is always read with ``yaml.safe_load``.
+
+Each stage's factory receives only its own section (kiss-icp style), never the whole config.
+"""
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Mapping
+
+import yaml
+
+from mipslam.errors import ConfigError
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+PRESETS = ("fast", "balanced", "accurate")
+
+
+def _check(cond: bool, key: str, message: str) -> None:
+    if not cond:
+        raise ConfigError(f"config key '{key}': {message}")
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Process-level settings."""
+
+    seed: int = 0
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    threads: int = 0  # torch intra-op threads; 0 keeps torch's default
+    checkpoint_every: int = 50  # frames between checkpoints; 0 = only at the end
+    keep_checkpoints: int = 2  # how many complete checkpoints stay on disk
+    evaluate_at_end: bool = True
+
+    def __post_init__(self):
+        _check(self.threads >= 0, "run.threads", "must be >= 0 (0 = torch default)")
+        _check(self.checkpoint_every >= 0, "run.checkpoint_every", "must be >= 0")
+        _check(self.keep_checkpoints >= 1, "run.keep_checkpoints", "must be >= 1")
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """Which sequence to read and how (intrinsics default to the dataset's own files/presets)."""
+
+    kind: Literal["replica", "tum", "synthetic"] = "synthetic"
+    path: str = ""
+    stride: int = 1
+    first_frame: int = 0
+    max_frames: int = 0  # 0 = all frames
+    downscale: int = 1  # integer factor: colour area-averaged, depth without mixing surfaces
+    camera: str = ""  # TUM preset: freiburg1 | freiburg2 | freiburg3 (empty = from fx..cy or the folder)
+    fx: float | None = None
+    fy: float | None = None
+    cx: float | None = None
+    cy: float | None = None
+    width: int | None = None
+    height: int | None = None
+    depth_scale: float | None = None  # stored value / depth_scale = metres (Replica 6553.5, TUM 5000)
+    association_tolerance_s: float = 0.02  # TUM rgb-depth-groundtruth association
+
+    def __post_init__(self):
+        _check(self.stride >= 1, "dataset.stride", "must be >= 1")
+        _check(self.first_frame >= 0, "dataset.first_frame", "must be >= 0")
+        _check(self.max_frames >= 0, "dataset.max_frames", "must be >= 0 (0 = all frames)")
+        _check(self.downscale >= 1, "dataset.downscale", "must be an integer >= 1")
+        for key in ("fx", "fy", "depth_scale"):
+            value = getattr(self, key)
+            _check(value is None or value > 0, f"dataset.{key}", "must be positive")
+        for key in ("width", "height"):
+            value = getattr(self, key)
+            _check(value is None or value >= 1, f"dataset.{key}", "must be >= 1")
+        _check(self.association_tolerance_s > 0, "dataset.association_tolerance_s", "must be positive")
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """Renderer settings (DESIGN.md, renderer contract and EAA)."""
+
+    mode: Literal["point", "mip", "ewa", "eaa", "exact"] = "eaa"
+    backend: Literal["auto", "torch", "cpu"] = "auto"
+    filter_3d: bool = False  # Mip-Splatting 3D smoothing filter
+    filter_3d_scale: float = 0.2
+    eaa_max_nodes: int = 8
+    eaa_gamma: float = 1.0
+    eaa_eta: float = 2.0
+    eaa_tau: float = 0.25
+    eaa_k_sigma: float = 3.0
+    near_plane: float = 0.01
+
+    def __post_init__(self):
+        _check(self.eaa_max_nodes >= 1, "render.eaa_max_nodes", "must be >= 1 (1 = point value)")
+        _check(self.eaa_gamma >= 0, "render.eaa_gamma", "must be >= 0")
+        _check(self.eaa_eta >= 0, "render.eaa_eta", "must be >= 0")
+        _check(self.eaa_tau > 0, "render.eaa_tau", "must be positive")
+        _check(self.eaa_k_sigma > 0, "render.eaa_k_sigma", "must be positive")
+        _check(self.filter_3d_scale > 0, "render.filter_3d_scale", "must be positive")
+        _check(self.near_plane > 0, "render.near_plane", "must be positive")
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    iterations: int = 40
+    lr_translation: float = 2e-3
+    lr_rotation: float = 4e-3
+    convergence_threshold: float = 1e-5  # stop when the pose update (se3 norm) is below this
+    alpha_color: float = 0.5  # weight of the photometric term against depth
+    coarse_to_fine: tuple[float, ...] = ()  # e.g. (0.5,) tracks at half resolution first
+    use_exposure: bool = False
+    opacity_threshold: float = 0.95  # pixels whose rendered opacity is below are ignored
+    gradient_mask_percentile: float = 0.0  # keep colour pixels above this image-gradient percentile
+    min_valid_fraction: float = 0.05
+    failure_loss_ratio: float = 5.0  # loss above ratio * running level = failure
+
+    def __post_init__(self):
+        _check(self.iterations >= 1, "tracking.iterations", "must be >= 1")
+        _check(0 <= self.alpha_color <= 1, "tracking.alpha_color", "must be in [0, 1]")
+        _check(self.lr_translation > 0 and self.lr_rotation > 0, "tracking.lr_*", "learning rates must be positive")
+        _check(all(0 < s <= 1 for s in self.coarse_to_fine), "tracking.coarse_to_fine", "scales must be in (0, 1]")
+        _check(0 <= self.min_valid_fraction <= 1, "tracking.min_valid_fraction", "must be in [0, 1]")
+        _check(self.failure_loss_ratio > 1, "tracking.failure_loss_ratio", "must be > 1")
+
+
+@dataclass(frozen=True)
+class KeyframeConfig:
+    covisibility_threshold: float = 0.9  # new keyframe when overlap with the last drops below
+    translation_ratio: float = 0.1  # ... or translation > ratio * median scene depth
+    rotation_deg: float = 15.0
+    window_size: int = 8
+    random_past: int = 2
+
+    def __post_init__(self):
+        _check(0 < self.covisibility_threshold <= 1, "keyframes.covisibility_threshold", "must be in (0, 1]")
+        _check(self.window_size >= 1, "keyframes.window_size", "must be >= 1")
+        _check(self.random_past >= 0, "keyframes.random_past", "must be >= 0")
+
+
+@dataclass(frozen=True)
+class MappingConfig:
+    iterations: int = 60
+    first_frame_iterations: int = 200
+    lr_means: float = 1e-3
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_opacities: float = 5e-2
+    lr_colors: float = 5e-3
+    lr_poses: float = 1e-4
+    alpha_color: float = 0.5
+    isotropy_weight: float = 10.0
+    lambda_freq: float = 0.0  # frequency-domain loss weight (issue 6 sets the default by measurement)
+    freq_patch: int = 16
+    freq_alpha: float = 1.0
+    add_opacity_threshold: float = 0.5
+    add_depth_error_ratio: float = 10.0  # depth error above ratio * median error adds Gaussians
+    prune_opacity: float = 0.005
+    max_gaussians: int = 200_000
+
+    def __post_init__(self):
+        _check(self.iterations >= 0, "mapping.iterations", "must be >= 0")
+        _check(self.max_gaussians >= 1, "mapping.max_gaussians", "must be >= 1")
+        _check(self.freq_patch >= 2, "mapping.freq_patch", "must be >= 2")
+        _check(self.lambda_freq >= 0, "mapping.lambda_freq", "must be >= 0")
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    enabled: bool = True
+    min_keyframe_gap: int = 10
+    icp_fitness_threshold: float = 0.3
+    icp_rmse_threshold: float = 0.05
+    spectral_edge_weighting: bool = True
+    low_frequency_correction: bool = True
+    num_eigenvectors: int = 16
+    full_iterations: int = 3
+
+    def __post_init__(self):
+        _check(self.min_keyframe_gap >= 1, "loop.min_keyframe_gap", "must be >= 1")
+        _check(self.num_eigenvectors >= 1, "loop.num_eigenvectors", "must be >= 1")
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    alignment: Literal["se3", "sim3", "none"] = "se3"
+    association_tolerance_s: float = 0.02
+    frames: Literal["all", "keyframes", "non_keyframes"] = "all"
+    scales: tuple[float, ...] = (1.0,)
+    modes: tuple[str, ...] = ()  # empty = the run's render mode
+
+    def __post_init__(self):
+        _check(self.association_tolerance_s > 0, "eval.association_tolerance_s", "must be positive")
+        _check(all(s > 0 for s in self.scales), "eval.scales", "must all be positive")
+
+
+@dataclass(frozen=True)
+class Config:
+    run: RunConfig = field(default_factory=RunConfig)
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+
+
+# ----------------------------------------------------------------------------- dict <-> dataclass
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+
+
+def _coerce(value: Any, tp: Any, key: str) -> Any:
+    """Check ``value`` against the annotation ``tp`` and convert where lossless (int -> float, list -> tuple)."""
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _coerce(value, arg, key)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError(f"config key '{key}': expected {_type_name(tp)}, got {value!r}")
+    if origin is Literal:
+        if value not in args:
+            near = difflib.get_close_matches(str(value), [str(a) for a in args], n=1)
+            hint = f" (did you mean '{near[0]}'?)" if near else ""
+            raise ConfigError(f"config key '{key}': {value!r} is not one of {', '.join(map(str, args))}{hint}")
+        return value
+    if origin is tuple:
+        if isinstance(value, (int, float, str)) and not isinstance(value, bool):
+            value = [value]
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"config key '{key}': expected a list, got {value!r}")
+        item_tp = args[0] if args else Any
+        return tuple(_coerce(v, item_tp, f"{key}[{i}]") for i, v in enumerate(value))
+    if tp is Any:
+        return value
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        raise ConfigError(f"config key '{key}': expected true or false, got {value!r}")
+    if tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        raise ConfigError(f"config key '{key}': expected an integer, got {value!r}")
+    if tp is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        raise ConfigError(f"config key '{key}': expected a number, got {value!r}")
+    if tp is str:
+        if isinstance(value, str):
+            return value
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return str(value)
+        raise ConfigError(f"config key '{key}': expected a string, got {value!r}")
+    raise ConfigError(f"config key '{key}': unsupported type {_type_name(tp)}")
+
+
+def _build(cls: type, data: Mapping[str, Any], prefix: str) -> Any:
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"config key '{prefix.rstrip('.') or '<root>'}': expected a mapping, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    names = [f.name for f in dataclasses.fields(cls)]
+    for key in data:
+        if key not in names:
+            near = difflib.get_close_matches(str(key), names, n=1, cutoff=0.5)
+            hint = f"; did you mean '{prefix}{near[0]}'?" if near else f"; valid keys: {', '.join(names)}"
+            raise ConfigError(f"unknown config key '{prefix}{key}'{hint}")
+    kwargs = {}
+    for name in names:
+        if name not in data:
+            continue
+        tp = hints[name]
+        if dataclasses.is_dataclass(tp):
+            kwargs[name] = _build(tp, data[name] or {}, f"{prefix}{name}.")
+        else:
+            kwargs[name] = _coerce(data[name], tp, f"{prefix}{name}")
+    try:
+        return cls(**kwargs)
+    except ConfigError:
+        raise
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"config section '{prefix.rstrip('.')}': {exc}") from exc
+
+
+def config_from_dict(data: Mapping[str, Any]) -> Config:
+    """Validate a nested mapping and build the frozen :class:`Config` (defaults for missing keys)."""
+    return _build(Config, data, "")
+
+
+def config_to_dict(config: Any) -> dict[str, Any]:
+    """Plain nested dict (tuples as lists) suitable for YAML/JSON."""
+
+    def plain(value: Any) -> Any:
+        if dataclasses.is_dataclass(value):
+            return {f.name: plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        if isinstance(value, tuple):
+            return [plain(v) for v in value]
+        return value
+
+    return plain(config)
+
+
+# ----------------------------------------------------------------------------- YAML, inheritance, overrides
+
+def _deep_merge(base: dict[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in override.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = _deep_merge(dict(out[key]), value)
+        else:
+            out[key] = value
+    return out
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read config file ({exc.strerror})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: invalid YAML ({str(exc).splitlines()[0]})") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: the top level must be a mapping of sections, got {type(data).__name__}")
+    return data
+
+
+def load_yaml_tree(path: str | Path, _stack: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """Read a YAML config and everything it inherits from, merged (parents first)."""
+    path = Path(path).resolve()
+    if path in _stack:
+        cycle = " -> ".join(str(p) for p in (*_stack, path))
+        raise ConfigError(f"{path}: cyclic inherit_from ({cycle}); remove one of the links")
+    data = _read_yaml(path)
+    parents = data.pop("inherit_from", None)
+    if parents is None:
+        return data
+    if isinstance(parents, str):
+        parents = [parents]
+    if not isinstance(parents, list) or not all(isinstance(p, str) for p in parents):
+        raise ConfigError(f"{path}: inherit_from must be a file name or a list of file names")
+    merged: dict[str, Any] = {}
+    for parent in parents:
+        merged = _deep_merge(merged, load_yaml_tree(path.parent / parent, (*_stack, path)))
+    return _deep_merge(merged, data)
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """``'tracking.iterations=30'`` -> (['tracking', 'iterations'], 30); the value is read as YAML."""
+    if "=" not in text:
+        raise ConfigError(f"override '{text}' must look like section.key=value")
+    key, raw = text.split("=", 1)
+    parts = [p for p in key.strip().split(".")]
+    if len(parts) < 2 or not all(parts):
+        raise ConfigError(f"override '{text}': the key must name a section and a key, e.g. tracking.iterations=30")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError:
+        value = raw
+    return parts, value
+
+
+def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    for text in overrides:
+        parts, value = parse_override(text)
+        nested: Any = value
+        for part in reversed(parts):
+            nested = {part: nested}
+        data = _deep_merge(data, nested)
+    return data
+
+
+def preset_path(name: str) -> Path:
+    if name not in PRESETS:
+        near = difflib.get_close_matches(name, PRESETS, n=1)
+        hint = f" (did you mean '{near[0]}'?)" if near else ""
+        raise ConfigError(f"unknown preset '{name}'{hint}; choose one of {', '.join(PRESETS)}")
+    path = CONFIG_DIR / f"{name}.yaml"
+    if not path.is_file():
+        raise ConfigError(f"{path}: preset file missing; reinstall mipslam from a full checkout")
+    return path
+
+
+def load_config(path: str | Path | None = None, *, preset: str | None = None, overrides: list[str] | None = None) -> Config:
+    """Resolve a config: file (with inherit_from) -> preset overlay -> ``--set`` overrides."""
+    data: dict[str, Any] = load_yaml_tree(path) if path is not None else {}
+    if preset:
+        data = _deep_merge(data, load_yaml_tree(preset_path(preset)))
+    data = apply_overrides(data, list(overrides or []))
+    return config_from_dict(data)
+
+
+def config_to_yaml(config: Config) -> str:
+    return yaml.safe_dump(config_to_dict(config), sort_keys=False)
+
+
+def save_config(config: Config, path: str | Path) -> None:
+    Path(path).write_text(config_to_yaml(config), encoding="utf-8")

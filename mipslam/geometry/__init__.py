@@ -1,0 +1,27 @@
+"""Pure geometry on tensors: SE(3)/SO(3) and the pinhole camera."""
+from mipslam.geometry.camera import pixel_grid, project, unproject, unproject_depth
+from mipslam.geometry.se3 import (
+    hat,
+    quat_wxyz_to_rotmat,
+    quat_wxyz_to_xyzw,
+    quat_xyzw_to_wxyz,
+    rigidity_error,
+    rotation_angle,
+    rotmat_to_quat_wxyz,
+    se3_compose,
+    se3_exp,
+    se3_from_rt,
+    se3_inverse,
+    se3_log,
+    so3_exp,
+    so3_log,
+    transform_points,
+    vee,
+)
+
+__all__ = [
+    "hat", "vee", "so3_exp", "so3_log", "se3_exp", "se3_log", "se3_inverse", "se3_compose", "se3_from_rt",
+    "quat_wxyz_to_rotmat", "rotmat_to_quat_wxyz", "quat_xyzw_to_wxyz", "quat_wxyz_to_xyzw",
+    "transform_points", "rigidity_error", "rotation_angle",
+    "pixel_grid", "project", "unproject", "unproject_depth",
+]

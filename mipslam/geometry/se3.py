@@ -1,0 +1,192 @@
+"""SO(3)/SE(3) on batched tensors: exp, log, compose, invert, quaternion conversions.
+
+Every function works on any leading batch shape ``[...]``, on any device and dtype, and is
+differentiable (small-angle branches use Taylor expansions, so gradients stay finite at 0).
+
+Conventions (DESIGN.md): a twist is ``xi = [rho, phi]`` (translation part first, then the
+rotation vector), ``T = exp(xi)`` is a 4x4 homogeneous matrix. Quaternions are ``wxyz`` here;
+files use TUM order ``xyzw`` and convert at the boundary with :func:`quat_xyzw_to_wxyz`.
+References: Barfoot, "State Estimation for Robotics" (2017), sections 7.1-7.2; Sola et al.,
+"A micro Lie theory for state estimation in robotics" (2018).
+"""
+from __future__ import annotations
+
+import torch
+
+# Below this squared angle the closed forms lose precision; the Taylor series take over.
+_SMALL_ANGLE_SQ = {torch.float64: 1e-10, torch.float32: 1e-5, torch.float16: 1e-3, torch.bfloat16: 1e-3}
+
+
+def _small(dtype: torch.dtype) -> float:
+    return _SMALL_ANGLE_SQ.get(dtype, 1e-5)
+
+
+def hat(phi: torch.Tensor) -> torch.Tensor:
+    """Skew-symmetric matrix of a 3-vector.  phi [..., 3] -> [..., 3, 3]"""
+    x, y, z = phi.unbind(-1)
+    zero = torch.zeros_like(x)
+    return torch.stack(
+        [torch.stack([zero, -z, y], -1), torch.stack([z, zero, -x], -1), torch.stack([-y, x, zero], -1)], -2
+    )
+
+
+def vee(omega: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`hat` (antisymmetric part).  omega [..., 3, 3] -> [..., 3]"""
+    return 0.5 * torch.stack(
+        [omega[..., 2, 1] - omega[..., 1, 2], omega[..., 0, 2] - omega[..., 2, 0], omega[..., 1, 0] - omega[..., 0, 1]],
+        -1,
+    )
+
+
+def _rodrigues_coeffs(theta2: torch.Tensor, small: float):
+    """A = sin t / t, B = (1 - cos t) / t^2, C = (t - sin t) / t^3, stable at t -> 0."""
+    is_small = theta2 < small
+    t2 = torch.where(is_small, torch.ones_like(theta2), theta2)
+    t = torch.sqrt(t2)
+    a = torch.where(is_small, 1 - theta2 / 6 + theta2**2 / 120, torch.sin(t) / t)
+    b = torch.where(is_small, 0.5 - theta2 / 24 + theta2**2 / 720, (1 - torch.cos(t)) / t2)
+    c = torch.where(is_small, 1.0 / 6 - theta2 / 120 + theta2**2 / 5040, (t - torch.sin(t)) / (t2 * t))
+    return a, b, c
+
+
+def so3_exp(phi: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix of a rotation vector (Rodrigues).  phi [..., 3] -> R [..., 3, 3]"""
+    theta2 = (phi * phi).sum(-1)
+    a, b, _ = _rodrigues_coeffs(theta2, _small(phi.dtype))
+    k = hat(phi)
+    eye = torch.eye(3, dtype=phi.dtype, device=phi.device).expand(k.shape)
+    return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)
+
+
+def rotmat_to_quat_wxyz(R: torch.Tensor) -> torch.Tensor:
+    """Unit quaternion (w >= 0) of a rotation matrix, Shepperd's method.  R [..., 3, 3] -> q [..., 4]"""
+    r00, r11, r22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    trace = r00 + r11 + r22
+    # Four candidate formulas, each well conditioned where its pivot is the largest.
+    cand = torch.stack(
+        [
+            torch.stack([1 + trace, R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1),
+            torch.stack([R[..., 2, 1] - R[..., 1, 2], 1 + r00 - r11 - r22, R[..., 0, 1] + R[..., 1, 0], R[..., 0, 2] + R[..., 2, 0]], -1),
+            torch.stack([R[..., 0, 2] - R[..., 2, 0], R[..., 0, 1] + R[..., 1, 0], 1 - r00 + r11 - r22, R[..., 1, 2] + R[..., 2, 1]], -1),
+            torch.stack([R[..., 1, 0] - R[..., 0, 1], R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1], 1 - r00 - r11 + r22], -1),
+        ],
+        -2,
+    )  # [..., 4, 4]
+    pivots = torch.stack([trace, r00, r11, r22], -1)
+    best = pivots.argmax(-1)  # [...]
+    q = torch.gather(cand, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(R.dtype).tiny)
+    return torch.where(q[..., :1] < 0, -q, q)
+
+
+def quat_wxyz_to_rotmat(q: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix of a quaternion (normalised here).  q [..., 4] (w, x, y, z) -> R [..., 3, 3]"""
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(q.dtype).tiny)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def quat_xyzw_to_wxyz(q_xyzw: torch.Tensor) -> torch.Tensor:
+    """TUM file order (qx qy qz qw) to the internal order (w, x, y, z).  [..., 4] -> [..., 4]"""
+    return torch.cat([q_xyzw[..., 3:], q_xyzw[..., :3]], -1)
+
+
+def quat_wxyz_to_xyzw(q_wxyz: torch.Tensor) -> torch.Tensor:
+    """Internal order (w, x, y, z) to TUM file order (qx qy qz qw).  [..., 4] -> [..., 4]"""
+    return torch.cat([q_wxyz[..., 1:], q_wxyz[..., :1]], -1)
+
+
+def so3_log(R: torch.Tensor) -> torch.Tensor:
+    """Rotation vector of a rotation matrix, valid for every angle in [0, pi].  R [..., 3, 3] -> phi [..., 3]
+
+    Goes through the quaternion: ``phi = 2 atan2(|v|, w) v / |v|`` is well conditioned at 0 and pi.
+    """
+    q = rotmat_to_quat_wxyz(R)
+    w, v = q[..., 0], q[..., 1:]
+    n2 = (v * v).sum(-1)
+    is_small = n2 < _small(R.dtype)
+    n = torch.sqrt(torch.where(is_small, torch.ones_like(n2), n2))
+    w_safe = torch.where(is_small, w, torch.ones_like(w))
+    scale = torch.where(is_small, 2 / w_safe * (1 - n2 / (3 * w_safe**2)), 2 * torch.atan2(n, w) / n)
+    return scale[..., None] * v
+
+
+def se3_from_rt(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Homogeneous matrix from rotation and translation.  R [..., 3, 3], t [..., 3] -> T [..., 4, 4]"""
+    top = torch.cat([R, t[..., None]], -1)
+    bottom = torch.zeros(*R.shape[:-2], 1, 4, dtype=R.dtype, device=R.device)
+    bottom[..., 0, 3] = 1
+    return torch.cat([top, bottom], -2)
+
+
+def se3_exp(xi: torch.Tensor) -> torch.Tensor:
+    """SE(3) exponential.  xi [..., 6] = [rho, phi] -> T [..., 4, 4]"""
+    rho, phi = xi[..., :3], xi[..., 3:]
+    theta2 = (phi * phi).sum(-1)
+    a, b, c = _rodrigues_coeffs(theta2, _small(xi.dtype))
+    k = hat(phi)
+    k2 = k @ k
+    eye = torch.eye(3, dtype=xi.dtype, device=xi.device).expand(k.shape)
+    R = eye + a[..., None, None] * k + b[..., None, None] * k2
+    V = eye + b[..., None, None] * k + c[..., None, None] * k2
+    return se3_from_rt(R, (V @ rho[..., None])[..., 0])
+
+
+def se3_log(T: torch.Tensor) -> torch.Tensor:
+    """SE(3) logarithm.  T [..., 4, 4] -> xi [..., 6] = [rho, phi]"""
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    phi = so3_log(R)
+    theta2 = (phi * phi).sum(-1)
+    is_small = theta2 < _small(T.dtype)
+    t2 = torch.where(is_small, torch.ones_like(theta2), theta2)
+    a, b, _ = _rodrigues_coeffs(theta2, _small(T.dtype))
+    # V^-1 = I - K/2 + D K^2 with D = (1 - A / (2 B)) / theta^2
+    d = torch.where(is_small, 1.0 / 12 + theta2 / 720 + theta2**2 / 30240, (1 - a / (2 * b)) / t2)
+    k = hat(phi)
+    eye = torch.eye(3, dtype=T.dtype, device=T.device).expand(k.shape)
+    V_inv = eye - 0.5 * k + d[..., None, None] * (k @ k)
+    return torch.cat([(V_inv @ t[..., None])[..., 0], phi], -1)
+
+
+def se3_inverse(T: torch.Tensor) -> torch.Tensor:
+    """Inverse of a rigid transform using R^T (exact, no matrix inversion).  [..., 4, 4] -> [..., 4, 4]"""
+    R_t = T[..., :3, :3].transpose(-1, -2)
+    return se3_from_rt(R_t, -(R_t @ T[..., :3, 3:4])[..., 0])
+
+
+def se3_compose(T_ab: torch.Tensor, T_bc: torch.Tensor) -> torch.Tensor:
+    """T_ac = T_ab T_bc (broadcasting).  [..., 4, 4] x [..., 4, 4] -> [..., 4, 4]"""
+    return T_ab @ T_bc
+
+
+def transform_points(T_ab: torch.Tensor, p_b: torch.Tensor) -> torch.Tensor:
+    """Points from frame b to frame a.  T_ab [4, 4] (or broadcastable [..., 4, 4]), p_b [..., 3] -> [..., 3]"""
+    return p_b @ T_ab[..., :3, :3].transpose(-1, -2) + T_ab[..., :3, 3]
+
+
+def rigidity_error(T: torch.Tensor) -> torch.Tensor:
+    """How far a 4x4 matrix is from a rigid transform (max abs deviation).  [..., 4, 4] -> [...]
+
+    Measures ``|R^T R - I|``, ``|det R - 1|`` and the bottom row ``[0, 0, 0, 1]``; non-finite
+    entries give ``inf``.
+    """
+    R = T[..., :3, :3]
+    eye = torch.eye(3, dtype=T.dtype, device=T.device)
+    ortho = (R.transpose(-1, -2) @ R - eye).abs().flatten(-2).amax(-1)
+    det = (torch.linalg.det(R) - 1).abs()
+    bottom = (T[..., 3, :] - torch.tensor([0, 0, 0, 1], dtype=T.dtype, device=T.device)).abs().amax(-1)
+    err = torch.maximum(torch.maximum(ortho, det), bottom)
+    finite = torch.isfinite(T).flatten(-2).all(-1)
+    return torch.where(finite, err, torch.full_like(err, float("inf")))
+
+
+def rotation_angle(R: torch.Tensor) -> torch.Tensor:
+    """Geodesic angle of a rotation in radians, in [0, pi].  R [..., 3, 3] -> [...]"""
+    return so3_log(R).norm(dim=-1)
