@@ -348,13 +348,31 @@ def _read_yaml(path: Path) -> dict[str, Any]:
     return data
 
 
+# Keys holding file-system paths: a relative path in a YAML file is relative to that file, so a
+# config works from any working directory (a relative path given with --set is relative to the cwd).
+_PATH_KEYS = (("dataset", "path"),)
+
+
+def _resolve_paths(data: dict[str, Any], base: Path) -> None:
+    for section, key in _PATH_KEYS:
+        block = data.get(section)
+        if isinstance(block, dict) and isinstance(block.get(key), str) and block[key]:
+            value = Path(block[key]).expanduser()
+            if not value.is_absolute():
+                block[key] = str((base / value).resolve())
+
+
 def load_yaml_tree(path: str | Path, _stack: tuple[Path, ...] = ()) -> dict[str, Any]:
-    """Read a YAML config and everything it inherits from, merged (parents first)."""
+    """Read a YAML config and everything it inherits from, merged (parents first).
+
+    Relative paths under ``dataset.path`` are resolved against the directory of the file that names them.
+    """
     path = Path(path).resolve()
     if path in _stack:
         cycle = " -> ".join(str(p) for p in (*_stack, path))
         raise ConfigError(f"{path}: cyclic inherit_from ({cycle}); remove one of the links")
     data = _read_yaml(path)
+    _resolve_paths(data, path.parent)
     parents = data.pop("inherit_from", None)
     if parents is None:
         return data

@@ -1,0 +1,153 @@
+"""Config: YAML + inherit_from + presets + --set, typed and validated, safe to load."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from mipslam.config import (
+    PRESETS,
+    Config,
+    config_from_dict,
+    config_to_dict,
+    config_to_yaml,
+    load_config,
+    load_yaml_tree,
+)
+from mipslam.errors import ConfigError
+
+REPO = Path(__file__).resolve().parent.parent
+CONFIGS = REPO / "configs"
+
+
+def test_defaults_round_trip_through_yaml(tmp_path):
+    config = load_config(CONFIGS / "replica.yaml", preset="balanced", overrides=["tracking.iterations=17"])
+    path = tmp_path / "resolved.yaml"
+    path.write_text(config_to_yaml(config))
+    again = load_config(path)
+    assert again == config
+    assert config_to_dict(again) == config_to_dict(config)
+
+
+@pytest.mark.parametrize("name", ["base", "replica", "tum", "synthetic", *PRESETS])
+def test_every_shipped_config_loads(name):
+    config = load_config(CONFIGS / f"{name}.yaml")
+    assert isinstance(config, Config)
+
+
+def test_dataset_configs_name_their_kind():
+    assert load_config(CONFIGS / "replica.yaml").dataset.kind == "replica"
+    assert load_config(CONFIGS / "tum.yaml").dataset.kind == "tum"
+    assert load_config(CONFIGS / "synthetic.yaml").dataset.kind == "synthetic"
+
+
+def test_unknown_key_names_the_key_and_the_nearest_valid_one():
+    with pytest.raises(ConfigError, match=r"tracking\.iteratons.*did you mean 'tracking\.iterations'"):
+        load_config(overrides=["tracking.iteratons=3"])
+    with pytest.raises(ConfigError, match=r"unknown config key 'trackin'.*'tracking'"):
+        config_from_dict({"trackin": {}})
+
+
+def test_unknown_key_in_a_file_is_rejected(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("mapping:\n  iterations: 3\n  isotropy_weigth: 2\n")
+    with pytest.raises(ConfigError, match="mapping.isotropy_weigth.*mapping.isotropy_weight"):
+        load_config(path)
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("tracking.iterations=-1", "tracking.iterations"),
+        ("tracking.iterations=abc", "expected an integer"),
+        ("tracking.iterations=2.5", "expected an integer"),
+        ("render.eaa_max_nodes=0", "render.eaa_max_nodes"),
+        ("render.mode=eea", "did you mean 'ewa'"),
+        ("dataset.downscale=0", "dataset.downscale"),
+        ("dataset.width=0", "dataset.width"),
+        ("run.evaluate_at_end=maybe", "expected true or false"),
+        ("eval.scales=[0.5,-1]", "eval.scales"),
+    ],
+)
+def test_wrong_types_and_out_of_range_values(override, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(overrides=[override])
+
+
+def test_override_values_are_typed():
+    config = load_config(overrides=["eval.scales=[0.25,0.5,1]", "dataset.fx=585", "tracking.use_exposure=true"])
+    assert config.eval.scales == (0.25, 0.5, 1.0)
+    assert config.dataset.fx == 585.0 and isinstance(config.dataset.fx, float)
+    assert config.tracking.use_exposure is True
+
+
+def test_malformed_override():
+    with pytest.raises(ConfigError, match="section.key=value"):
+        load_config(overrides=["tracking.iterations"])
+    with pytest.raises(ConfigError, match="name a section and a key"):
+        load_config(overrides=["iterations=3"])
+
+
+def test_inherit_from_merges_deeply_and_child_wins(tmp_path):
+    (tmp_path / "parent.yaml").write_text("tracking:\n  iterations: 11\n  alpha_color: 0.3\nmapping:\n  iterations: 5\n")
+    (tmp_path / "child.yaml").write_text("inherit_from: parent.yaml\ntracking:\n  iterations: 22\n")
+    config = load_config(tmp_path / "child.yaml")
+    assert config.tracking.iterations == 22
+    assert config.tracking.alpha_color == 0.3
+    assert config.mapping.iterations == 5
+
+
+def test_preset_then_overrides_order():
+    config = load_config(CONFIGS / "synthetic.yaml", preset="fast", overrides=["tracking.iterations=7"])
+    fast = load_config(CONFIGS / "synthetic.yaml", preset="fast")
+    assert config.tracking.iterations == 7
+    assert fast.tracking.iterations < load_config(CONFIGS / "synthetic.yaml", preset="accurate").tracking.iterations
+
+
+def test_unknown_preset():
+    with pytest.raises(ConfigError, match="unknown preset 'fats'.*'fast'"):
+        load_config(preset="fats")
+
+
+def test_cyclic_inherit_from_is_an_error(tmp_path):
+    (tmp_path / "a.yaml").write_text("inherit_from: b.yaml\n")
+    (tmp_path / "b.yaml").write_text("inherit_from: a.yaml\n")
+    with pytest.raises(ConfigError, match="cyclic inherit_from"):
+        load_config(tmp_path / "a.yaml")
+
+
+def test_missing_file_and_bad_yaml(tmp_path):
+    with pytest.raises(ConfigError, match="config file not found"):
+        load_config(tmp_path / "nope.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("tracking: [1, 2\n")
+    with pytest.raises(ConfigError, match="invalid YAML"):
+        load_config(bad)
+    top = tmp_path / "list.yaml"
+    top.write_text("- 1\n- 2\n")
+    with pytest.raises(ConfigError, match="top level must be a mapping"):
+        load_config(top)
+
+
+def test_yaml_is_read_safely(tmp_path):
+    marker = tmp_path / "executed"
+    evil = tmp_path / "evil.yaml"
+    evil.write_text(f"run: !!python/object/apply:os.system ['touch {marker}']\n")
+    with pytest.raises(ConfigError, match="invalid YAML"):
+        load_config(evil)
+    assert not marker.exists()
+
+
+def test_relative_dataset_path_is_relative_to_the_file(tmp_path):
+    sub = tmp_path / "cfg"
+    sub.mkdir()
+    (sub / "c.yaml").write_text("dataset:\n  kind: replica\n  path: ../data/seq\n")
+    assert load_yaml_tree(sub / "c.yaml")["dataset"]["path"] == str((tmp_path / "data" / "seq").resolve())
+    # A relative path given on the command line stays relative to the working directory.
+    assert load_config(sub / "c.yaml", overrides=["dataset.path=other"]).dataset.path == "other"
+
+
+def test_config_objects_are_frozen():
+    config = load_config()
+    with pytest.raises(Exception):
+        config.tracking.iterations = 3  # type: ignore[misc]
