@@ -1,0 +1,109 @@
+"""Local frequency-domain perceptual loss (DESIGN.md, "Losses"; focal weighting after Jiang et al., ICCV 2021).
+
+Definition (this project's contract):
+
+1. Masking: invalid pixels (``mask == False``) are set to 0 in *both* images before anything else.
+2. Tiling: the ``[H, W]`` image is cut into non-overlapping ``P x P`` patches starting at pixel (0, 0). When H or
+   W is not a multiple of P, the image is zero-padded at the bottom and right to the next multiple; the padded
+   pixels are zero in both images, i.e. they are treated exactly like masked pixels. Every real pixel therefore
+   lies in exactly one patch and is never cropped away.
+3. Window: each patch is multiplied by the separable Hann window sampled at the pixel centres of the patch,
+   ``h[n] = sin^2(pi (n + 1/2) / P)``, ``n = 0..P-1``, ``W[m, n] = h[m] h[n]``. (Sampling at the pixel centres,
+   the project's pixel convention, keeps the window symmetric and strictly positive, so no pixel of a patch is
+   blind to the loss, unlike the endpoint-sampled Hann window whose first row and column are zero.)
+4. Transform, per patch and channel: ``F = fft2(W * x, norm="ortho")``, i.e.
+   ``F[k, l] = 1/P sum_{m,n} W[m,n] x[m,n] exp(-2 pi i (k m + l n) / P)``.
+5. Focal weight, per patch and channel (as Focal Frequency Loss normalises per patch and channel):
+   ``w = stopgrad((|F_r - F_t| / max_{k,l} |F_r - F_t|)^alpha)`` in [0, 1]; where the maximum is 0 (identical
+   patches, e.g. two black or two constant patches) the weight is 0 and nothing is divided by zero.
+6. ``L_freq = mean over (patches, channels, k, l) of w * |F_r - F_t|^2``.
+
+Because the transform is linear, ``F_r - F_t`` is computed as one FFT of the windowed difference. The loss is
+differentiable in the rendered image (gradient ``2 w Re(...)``, no square root in the gradient path), zero for
+identical images, and invariant to moving image and target together by whole patches (a permutation of patches;
+with padding, as long as the padded patches move with them). Pure function on tensors: any device and dtype.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+__all__ = ["frequency_loss", "hann_window_2d", "image_to_patches"]
+
+
+def hann_window_2d(patch_size: int, *, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> torch.Tensor:
+    """Separable Hann window sampled at pixel centres, ``h[m] h[n]`` with ``h[n] = sin^2(pi (n + 1/2) / P)``.  # [P, P]"""
+    if patch_size < 2:
+        raise ValueError(f"frequency loss patch size must be >= 2, got {patch_size}")
+    n = torch.arange(patch_size, dtype=torch.float64, device=device)
+    h = torch.sin(math.pi * (n + 0.5) / patch_size) ** 2  # [P]
+    return (h[:, None] * h[None, :]).to(dtype)
+
+
+def _as_hwc(image: torch.Tensor, name: str) -> torch.Tensor:
+    if image.dim() == 2:
+        return image[..., None]
+    if image.dim() == 3:
+        return image
+    raise ValueError(f"frequency loss: {name} must be [H, W] or [H, W, C], got shape {tuple(image.shape)}")
+
+
+def image_to_patches(image: torch.Tensor, patch_size: int) -> torch.Tensor:
+    """Cut ``image`` (``[H, W, C]`` or ``[H, W]``) into zero-padded, non-overlapping patches.
+
+    Returns ``[N, C, P, P]`` with ``N = ceil(H/P) * ceil(W/P)`` in row-major patch order; the image is padded with
+    zeros at the bottom and right to a multiple of P.
+    """
+    hwc = _as_hwc(image, "image")
+    height, width, channels = hwc.shape
+    rows, cols = -(-height // patch_size), -(-width // patch_size)
+    chw = hwc.permute(2, 0, 1)  # [C, H, W]
+    pad_bottom, pad_right = rows * patch_size - height, cols * patch_size - width
+    if pad_bottom or pad_right:
+        chw = torch.nn.functional.pad(chw, (0, pad_right, 0, pad_bottom))
+    tiles = chw.reshape(channels, rows, patch_size, cols, patch_size)
+    return tiles.permute(1, 3, 0, 2, 4).reshape(rows * cols, channels, patch_size, patch_size)
+
+
+def frequency_loss(
+    rendered: torch.Tensor,  # [H, W, C] (or [H, W])
+    target: torch.Tensor,  # same shape as rendered
+    *,
+    patch_size: int = 16,
+    alpha: float = 1.0,
+    mask: torch.Tensor | None = None,  # [H, W] bool, True = valid pixel
+) -> torch.Tensor:  # [] scalar, units of intensity^2
+    """Local frequency-domain perceptual loss ``L_freq`` (definition in the module docstring).
+
+    Args:
+        rendered: rendered image; the loss is differentiable with respect to it.
+        target: observed image (no gradient is needed; it gets one if it requires it).
+        patch_size: P, the side of the square patches in pixels (>= 2).
+        alpha: focal exponent (>= 0); 0 weighs every frequency equally (w = 1 where the patch differs).
+        mask: valid pixels; invalid ones are zeroed in both images before the transform.
+    """
+    if rendered.shape != target.shape:
+        raise ValueError(f"frequency loss: rendered {tuple(rendered.shape)} and target {tuple(target.shape)} differ")
+    if alpha < 0:
+        raise ValueError(f"frequency loss: focal exponent alpha must be >= 0, got {alpha}")
+    difference = rendered - target  # [H, W(, C)]
+    if mask is not None:
+        if mask.shape != rendered.shape[:2]:
+            raise ValueError(f"frequency loss: mask {tuple(mask.shape)} must be the [H, W] of {tuple(rendered.shape)}")
+        pixel_mask = mask.to(torch.bool)
+        if difference.dim() == 3:
+            pixel_mask = pixel_mask[..., None]
+        difference = torch.where(pixel_mask, difference, 0.0)
+    if not difference.dtype.is_floating_point:
+        raise ValueError(f"frequency loss: images must be floating point, got {difference.dtype}")
+    patches = image_to_patches(difference, patch_size)  # [N, C, P, P]
+    window = hann_window_2d(patch_size, dtype=patches.dtype, device=patches.device)  # [P, P]
+    spectrum = torch.fft.fft2(patches * window, norm="ortho")  # [N, C, P, P] complex: F_r - F_t
+    power = spectrum.real * spectrum.real + spectrum.imag * spectrum.imag  # |F_r - F_t|^2, [N, C, P, P]
+    with torch.no_grad():
+        magnitude = torch.sqrt(power)  # [N, C, P, P]
+        peak = magnitude.amax(dim=(-2, -1), keepdim=True)  # [N, C, 1, 1]
+        normalised = magnitude / peak.clamp_min(torch.finfo(magnitude.dtype).tiny)
+        weight = torch.where(peak > 0, normalised.clamp(0.0, 1.0) ** alpha, 0.0)  # [N, C, P, P]
+    return (weight * power).mean()

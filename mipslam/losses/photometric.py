@@ -1,0 +1,258 @@
+"""Photometric + depth L1 loss of tracking and mapping (DESIGN.md, "Losses").
+
+    L = alpha_c * mean_{p in M_rgb}(|exposure(I)(p) - I_gt(p)|) + (1 - alpha_c) * mean_{p in M_d}(|D(p) - D_gt(p)|)
+
+* ``I``, ``I_gt``: rendered and observed colour, float in [0, 1], ``[H, W, C]`` (channels last, as the renderer
+  returns them). The colour mean runs over the selected pixels *and* the channels.
+* ``D``, ``D_gt``: rendered and observed depth in metres, ``[H, W]``; ``D_gt == 0`` means "no measurement".
+* Masks (built by :func:`rgbd_masks`, or passed in by the caller):
+  - depth mask ``M_d``: observed depth is valid (finite and > 0) and, when a rendered opacity is given, the
+    rendered opacity is at least ``opacity_threshold`` (the map explains the pixel; MonoGS-style);
+  - colour mask ``M_rgb``: the same opacity condition, the observed colour is finite, the image-gradient mask
+    (pixels whose target gradient magnitude is above a percentile, see :func:`image_gradient_mask`), and, where
+    asked, valid observed depth too (SplaTAM-style).
+* Exposure: ``exp(a) * I + b`` per frame (gain ``a`` in log space so the gain stays positive), see
+  :func:`apply_affine_exposure` and :class:`AffineExposure`.
+
+An empty mask gives a term that is exactly zero, keeps a (zero) gradient path to the rendered inputs and is
+reported through the pixel counts of :class:`RGBDLoss`, so the caller can flag "too few valid pixels".
+Pure functions on tensors: any device, no config import.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+__all__ = [
+    "AffineExposure",
+    "RGBDLoss",
+    "RGBDMasks",
+    "apply_affine_exposure",
+    "image_gradient_magnitude",
+    "image_gradient_mask",
+    "masked_l1",
+    "rgbd_l1_loss",
+    "rgbd_masks",
+]
+
+# ITU-R BT.601 luma weights, used to reduce a colour target to one channel for the gradient mask.
+_LUMA_WEIGHTS = (0.299, 0.587, 0.114)
+
+
+@dataclass(frozen=True)
+class RGBDMasks:
+    """Which pixels each term of the loss uses.
+
+    color: pixels of the colour term   # [H, W] bool
+    depth: pixels of the depth term    # [H, W] bool
+    """
+
+    color: torch.Tensor
+    depth: torch.Tensor
+
+
+@dataclass(frozen=True)
+class RGBDLoss:
+    """Result of :func:`rgbd_l1_loss`.
+
+    total: alpha_c * color + (1 - alpha_c) * depth, differentiable   # [] scalar
+    color: mean colour L1 over the colour mask (unweighted)          # [] scalar
+    depth: mean depth L1 over the depth mask, metres (unweighted)    # [] scalar
+    num_color_pixels / num_depth_pixels: how many pixels each term averaged over (0 = the term is a zero).
+    """
+
+    total: torch.Tensor
+    color: torch.Tensor
+    depth: torch.Tensor
+    num_color_pixels: int
+    num_depth_pixels: int
+
+
+def apply_affine_exposure(
+    image: torch.Tensor,  # [..., C]
+    log_gain: torch.Tensor,  # [] or [C]
+    bias: torch.Tensor,  # [] or [C]
+) -> torch.Tensor:  # [..., C]
+    """Affine exposure model ``exp(a) * I + b`` (MonoGS's per-frame brightness model).
+
+    ``log_gain`` (a) and ``bias`` (b) are scalars or per-channel vectors broadcast over the last (channel)
+    dimension. ``a = 0, b = 0`` is the identity. The result is not clamped (clamping would cut the gradient).
+    """
+    return torch.exp(log_gain) * image + bias
+
+
+class AffineExposure(nn.Module):
+    """Learnable per-frame affine exposure ``exp(a) * I + b``, initialised to the identity.
+
+    Args:
+        channels: 1 for one gain/bias shared by all channels (MonoGS), or the number of colour channels for a
+            per-channel model.
+        device, dtype: where the two parameters live (take them from the images you will correct).
+    """
+
+    def __init__(self, channels: int = 1, *, device: torch.device | str | None = None, dtype: torch.dtype | None = None):
+        super().__init__()
+        if channels < 1:
+            raise ValueError(f"AffineExposure needs channels >= 1, got {channels}")
+        shape = () if channels == 1 else (channels,)
+        self.log_gain = nn.Parameter(torch.zeros(shape, device=device, dtype=dtype))  # [] or [C]
+        self.bias = nn.Parameter(torch.zeros(shape, device=device, dtype=dtype))  # [] or [C]
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:  # [..., C] -> [..., C]
+        return apply_affine_exposure(image, self.log_gain, self.bias)
+
+
+def image_gradient_magnitude(image: torch.Tensor) -> torch.Tensor:  # [H, W, C] or [H, W] -> [H, W]
+    """Sobel gradient magnitude of the image's luma (BT.601 weights for 3 channels, channel mean otherwise).
+
+    Units: intensity per pixel; the Sobel kernels are normalised by 1/8 so that a unit ramp gives 1.
+    Borders use replicate padding (a constant continuation adds no gradient).
+    """
+    if image.dim() == 3:
+        if image.shape[-1] == 3:
+            weights = torch.tensor(_LUMA_WEIGHTS, dtype=image.dtype, device=image.device)
+            gray = (image * weights).sum(dim=-1)
+        else:
+            gray = image.mean(dim=-1)
+    elif image.dim() == 2:
+        gray = image
+    else:
+        raise ValueError(f"image_gradient_magnitude expects [H, W] or [H, W, C], got shape {tuple(image.shape)}")
+    gray = gray.to(torch.promote_types(gray.dtype, torch.float32))
+    padded = torch.nn.functional.pad(gray[None, None], (1, 1, 1, 1), mode="replicate")[0, 0]
+    # Sobel: derivative (-1, 0, 1)/2 along one axis, smoothing (1, 2, 1)/4 along the other.
+    dx = padded[:, 2:] - padded[:, :-2]  # [H+2, W]
+    dy = padded[2:, :] - padded[:-2, :]  # [H, W+2]
+    grad_x = (dx[:-2] + 2.0 * dx[1:-1] + dx[2:]) / 8.0
+    grad_y = (dy[:, :-2] + 2.0 * dy[:, 1:-1] + dy[:, 2:]) / 8.0
+    return torch.sqrt(grad_x * grad_x + grad_y * grad_y)
+
+
+def image_gradient_mask(image: torch.Tensor, percentile: float) -> torch.Tensor:  # [H, W(, C)] -> [H, W] bool
+    """Pixels whose target gradient magnitude lies above the ``percentile``-th percentile (0..100).
+
+    ``percentile <= 0`` keeps every pixel. Otherwise a pixel is kept when its magnitude is strictly greater than
+    the percentile value (linear interpolation between order statistics, as ``torch.quantile``), so a flat image
+    keeps no pixel: it holds no photometric information. Compute it on the *target* (observed) image, once per
+    frame; it carries no gradient.
+    """
+    if not 0.0 <= percentile < 100.0:
+        raise ValueError(f"gradient percentile must be in [0, 100), got {percentile}")
+    height, width = image.shape[0], image.shape[1]
+    if percentile <= 0.0:
+        return torch.ones((height, width), dtype=torch.bool, device=image.device)
+    with torch.no_grad():
+        magnitude = image_gradient_magnitude(image)  # [H, W]
+        flat = magnitude.reshape(-1)
+        finite = flat[torch.isfinite(flat)]
+        if finite.numel() == 0:
+            return torch.zeros((height, width), dtype=torch.bool, device=image.device)
+        threshold = torch.quantile(finite, percentile / 100.0)
+        return magnitude > threshold
+
+
+def rgbd_masks(
+    color_gt: torch.Tensor,  # [H, W, C]
+    depth_gt: torch.Tensor,  # [H, W] metres, 0 = no measurement
+    alpha: torch.Tensor | None = None,  # [H, W] rendered opacity in [0, 1]
+    *,
+    opacity_threshold: float = 0.0,
+    gradient_percentile: float = 0.0,
+    color_needs_valid_depth: bool = False,
+    extra_color_mask: torch.Tensor | None = None,  # [H, W] bool
+) -> RGBDMasks:
+    """Masks of the colour and depth terms (see the module docstring). No gradient flows through masks.
+
+    ``alpha=None`` (or ``opacity_threshold <= 0``) skips the opacity condition.
+    """
+    if depth_gt.dim() != 2 or color_gt.shape[:2] != depth_gt.shape:
+        raise ValueError(
+            f"rgbd_masks: colour {tuple(color_gt.shape)} and depth {tuple(depth_gt.shape)} must be [H, W, C] and [H, W]"
+        )
+    with torch.no_grad():
+        valid_depth = torch.isfinite(depth_gt) & (depth_gt > 0)  # [H, W]
+        color_ok = torch.isfinite(color_gt).all(dim=-1) if color_gt.dim() == 3 else torch.isfinite(color_gt)
+        if alpha is not None and opacity_threshold > 0.0:
+            if alpha.shape != depth_gt.shape:
+                raise ValueError(f"rgbd_masks: opacity {tuple(alpha.shape)} must match depth {tuple(depth_gt.shape)}")
+            opaque = alpha.detach() >= opacity_threshold
+        else:
+            opaque = torch.ones_like(valid_depth)
+        color_mask = color_ok & opaque & image_gradient_mask(color_gt, gradient_percentile)
+        if color_needs_valid_depth:
+            color_mask = color_mask & valid_depth
+        if extra_color_mask is not None:
+            color_mask = color_mask & extra_color_mask.to(torch.bool)
+        depth_mask = valid_depth & opaque
+    return RGBDMasks(color=color_mask, depth=depth_mask)
+
+
+def masked_l1(
+    prediction: torch.Tensor,  # [H, W] or [H, W, C]
+    target: torch.Tensor,  # same shape as prediction
+    mask: torch.Tensor,  # [H, W] bool
+) -> tuple[torch.Tensor, int]:
+    """Mean of ``|prediction - target|`` over the masked pixels (and all channels), and the pixel count.
+
+    Unselected pixels are removed with ``torch.where`` (not a multiplication), so a NaN or inf outside the mask
+    neither reaches the value nor the gradient. An empty mask gives an exact zero that still depends on
+    ``prediction`` (its gradient is zero), never a division by zero.
+    """
+    if prediction.shape != target.shape:
+        raise ValueError(f"masked_l1: prediction {tuple(prediction.shape)} and target {tuple(target.shape)} differ")
+    if mask.shape != prediction.shape[:2]:
+        raise ValueError(f"masked_l1: mask {tuple(mask.shape)} must be the [H, W] of {tuple(prediction.shape)}")
+    channels = prediction.shape[2] if prediction.dim() == 3 else 1
+    mask = mask.to(torch.bool)
+    pixel_mask = mask if prediction.dim() == 2 else mask[..., None]
+    residual = torch.where(pixel_mask, prediction - target, 0.0)
+    count = int(mask.sum())
+    total = residual.abs().sum()
+    return total / float(max(count, 1) * channels), count
+
+
+def rgbd_l1_loss(
+    color: torch.Tensor,  # [H, W, C] rendered colour in [0, 1]
+    depth: torch.Tensor,  # [H, W] rendered depth, metres
+    color_gt: torch.Tensor,  # [H, W, C] observed colour in [0, 1]
+    depth_gt: torch.Tensor,  # [H, W] observed depth, metres, 0 = none
+    *,
+    alpha_color: float,
+    masks: RGBDMasks | None = None,
+    alpha: torch.Tensor | None = None,  # [H, W] rendered opacity (used only when masks is None)
+    opacity_threshold: float = 0.0,
+    gradient_percentile: float = 0.0,
+    color_needs_valid_depth: bool = False,
+    exposure: nn.Module | None = None,
+) -> RGBDLoss:
+    """The tracking/mapping loss of DESIGN.md (formula in the module docstring).
+
+    Pass precomputed ``masks`` (e.g. the gradient mask once per frame, see :func:`rgbd_masks`), or let the
+    function build them from ``alpha``/``opacity_threshold``/``gradient_percentile``. ``exposure`` (e.g.
+    :class:`AffineExposure`) is applied to the rendered colour before the comparison.
+    """
+    if not 0.0 <= alpha_color <= 1.0:
+        raise ValueError(f"alpha_color must be in [0, 1], got {alpha_color}")
+    if color.shape != color_gt.shape or depth.shape != depth_gt.shape:
+        raise ValueError(
+            f"rgbd_l1_loss: rendered colour {tuple(color.shape)} / depth {tuple(depth.shape)} do not match "
+            f"the observed {tuple(color_gt.shape)} / {tuple(depth_gt.shape)}"
+        )
+    if masks is None:
+        masks = rgbd_masks(
+            color_gt,
+            depth_gt,
+            alpha,
+            opacity_threshold=opacity_threshold,
+            gradient_percentile=gradient_percentile,
+            color_needs_valid_depth=color_needs_valid_depth,
+        )
+    corrected = exposure(color) if exposure is not None else color
+    color_term, num_color = masked_l1(corrected, color_gt, masks.color)
+    depth_term, num_depth = masked_l1(depth, depth_gt, masks.depth)
+    total = alpha_color * color_term + (1.0 - alpha_color) * depth_term
+    return RGBDLoss(
+        total=total, color=color_term, depth=depth_term, num_color_pixels=num_color, num_depth_pixels=num_depth
+    )

@@ -1,0 +1,189 @@
+"""Photometric/depth L1 loss, masks, exposure model and regularisers (mipslam.losses)."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from mipslam.losses.photometric import (
+    AffineExposure,
+    apply_affine_exposure,
+    image_gradient_magnitude,
+    image_gradient_mask,
+    masked_l1,
+    rgbd_l1_loss,
+    rgbd_masks,
+)
+from mipslam.losses.regularizers import isotropy_loss, scale_cap_loss
+
+
+def _frame(height: int = 12, width: int = 16, seed: int = 0):
+    generator = torch.Generator().manual_seed(seed)
+    color = torch.rand(height, width, 3, generator=generator)
+    depth = 1.0 + torch.rand(height, width, generator=generator)
+    return color, depth
+
+
+def test_loss_value_matches_the_formula_by_hand():
+    color_gt, depth_gt = _frame()
+    color = color_gt + 0.1  # |dI| = 0.1 everywhere
+    depth = depth_gt.clone()
+    depth_gt[0, :] = 0.0  # one row without measurement: 16 of 192 pixels
+    depth[1:, :] += 0.25  # |dD| = 0.25 on the 176 valid pixels
+    result = rgbd_l1_loss(color, depth, color_gt, depth_gt, alpha_color=0.7)
+    assert result.num_color_pixels == 12 * 16
+    assert result.num_depth_pixels == 11 * 16
+    assert result.color.item() == pytest.approx(0.1, abs=1e-6)
+    assert result.depth.item() == pytest.approx(0.25, abs=1e-6)
+    assert result.total.item() == pytest.approx(0.7 * 0.1 + 0.3 * 0.25, abs=1e-6)
+
+
+def test_depth_mask_ignores_invalid_and_transparent_pixels_even_if_nan():
+    color_gt, depth_gt = _frame()
+    depth_gt[2, 6] = float("nan")
+    depth_gt[4, 5] = float("inf")
+    alpha = torch.ones(12, 16)
+    alpha[:, :4] = 0.5  # 48 transparent pixels
+    color = color_gt.clone().requires_grad_(True)
+    depth = (depth_gt.nan_to_num(0.0, posinf=0.0) + 0.5).requires_grad_(True)
+    result = rgbd_l1_loss(color, depth, color_gt, depth_gt, alpha_color=0.5, alpha=alpha, opacity_threshold=0.95)
+    assert result.num_depth_pixels == 12 * 12 - 2
+    assert result.num_color_pixels == 12 * 12
+    assert result.depth.item() == pytest.approx(0.5, abs=1e-6)
+    result.total.backward()
+    assert torch.isfinite(depth.grad).all() and torch.isfinite(color.grad).all()
+    assert depth.grad[:, :4].abs().max() == 0.0  # transparent pixels get no gradient
+    assert depth.grad[2, 6] == 0.0 and depth.grad[4, 5] == 0.0
+    # each valid pixel's gradient is (1 - alpha_c) * sign / count
+    assert depth.grad[6, 10].item() == pytest.approx(0.5 / (12 * 12 - 2), rel=1e-5)
+
+
+def test_empty_masks_give_zero_with_a_gradient_path_and_zero_counts():
+    color_gt, _ = _frame()
+    depth_gt = torch.zeros(12, 16)  # no depth anywhere
+    color = torch.rand(12, 16, 3, requires_grad=True)
+    depth = torch.rand(12, 16, requires_grad=True)
+    alpha = torch.zeros(12, 16)  # nothing rendered
+    result = rgbd_l1_loss(color, depth, color_gt, depth_gt, alpha_color=0.5, alpha=alpha, opacity_threshold=0.5)
+    assert result.num_color_pixels == 0 and result.num_depth_pixels == 0
+    assert result.total.item() == 0.0
+    assert result.total.requires_grad
+    result.total.backward()
+    assert torch.equal(color.grad, torch.zeros_like(color)) and torch.equal(depth.grad, torch.zeros_like(depth))
+
+
+def test_masked_l1_excludes_nan_in_rendered_outside_mask():
+    prediction = torch.tensor([[1.0, float("nan")], [3.0, 4.0]], requires_grad=True)
+    target = torch.tensor([[0.0, 0.0], [1.0, float("nan")]])
+    mask = torch.tensor([[True, False], [True, False]])
+    value, count = masked_l1(prediction, target, mask)
+    assert count == 2 and value.item() == pytest.approx(1.5)
+    value.backward()
+    assert torch.equal(prediction.grad, torch.tensor([[0.5, 0.0], [0.5, 0.0]]))
+
+
+def test_gradient_mask_keeps_edges_above_percentile():
+    image = torch.zeros(20, 20, 3)
+    image[:, 10:] = 1.0  # vertical step edge between columns 9 and 10
+    magnitude = image_gradient_magnitude(image)
+    # Sobel with 1/8 normalisation: a unit step gives 0.5 on both columns next to it, 0 elsewhere
+    assert magnitude[5, 9].item() == pytest.approx(0.5) and magnitude[5, 10].item() == pytest.approx(0.5)
+    assert magnitude[:, :9].abs().max() == 0 and magnitude[:, 11:].abs().max() == 0
+    mask = image_gradient_mask(image, 50.0)
+    assert mask.sum().item() == 40  # exactly the two edge columns
+    assert mask[:, 9].all() and mask[:, 10].all()
+    assert image_gradient_mask(image, 0.0).all()
+    assert not image_gradient_mask(torch.full((8, 8, 3), 0.3), 10.0).any()  # flat: no information
+
+
+def test_unit_ramp_has_unit_gradient():
+    ramp = torch.arange(10.0)[None, :].repeat(8, 1) * 0.05  # 0.05 per pixel along x
+    magnitude = image_gradient_magnitude(ramp)
+    assert magnitude[3, 1:-1].allclose(torch.full((8,), 0.05))
+
+
+def test_gradient_percentile_in_loss_uses_target_gradients():
+    color_gt, depth_gt = _frame(20, 20)
+    masks = rgbd_masks(color_gt, depth_gt, gradient_percentile=75.0)
+    # strictly above the 75th percentile of 400 distinct magnitudes: 100 pixels (quantile interpolates)
+    assert 99 <= int(masks.color.sum()) <= 100
+    assert masks.depth.all()
+    with_depth = rgbd_masks(color_gt, depth_gt * 0, gradient_percentile=75.0, color_needs_valid_depth=True)
+    assert not with_depth.color.any()
+
+
+def test_exposure_identity_at_init_and_recovers_gain_and_bias():
+    torch.manual_seed(0)
+    observed, depth_gt = _frame(16, 16, seed=3)
+    true_log_gain, true_bias = math.log(1.3), -0.05
+    rendered = (observed - true_bias) / math.exp(true_log_gain)  # so exp(a) * rendered + b = observed
+    exposure = AffineExposure()
+    assert torch.equal(exposure(rendered), rendered)
+    optimizer = torch.optim.Adam(exposure.parameters(), lr=0.02)
+    for _ in range(400):
+        optimizer.zero_grad()
+        loss = rgbd_l1_loss(rendered, depth_gt, observed, depth_gt, alpha_color=1.0, exposure=exposure).total
+        loss.backward()
+        optimizer.step()
+    assert exposure.log_gain.item() == pytest.approx(true_log_gain, abs=0.01)
+    assert exposure.bias.item() == pytest.approx(true_bias, abs=0.01)
+
+
+def test_per_channel_exposure_broadcasts_over_channels():
+    image = torch.full((2, 2, 3), 0.5)
+    out = apply_affine_exposure(image, torch.tensor([0.0, math.log(2.0), 0.0]), torch.tensor([0.1, 0.0, -0.1]))
+    assert torch.allclose(out[0, 0], torch.tensor([0.6, 1.0, 0.4]))
+    assert AffineExposure(3).log_gain.shape == (3,)
+
+
+def test_loss_gradient_descent_reduces_loss():
+    color_gt, depth_gt = _frame()
+    color, depth = _frame(seed=1)
+    color.requires_grad_(True)
+    depth.requires_grad_(True)
+    first = rgbd_l1_loss(color, depth, color_gt, depth_gt, alpha_color=0.5)
+    first.total.backward()
+    with torch.no_grad():
+        color2 = color - 0.01 * color.grad / color.grad.abs().max()
+        depth2 = depth - 0.01 * depth.grad / depth.grad.abs().max()
+    second = rgbd_l1_loss(color2, depth2, color_gt, depth_gt, alpha_color=0.5)
+    assert second.total.item() < first.total.item()
+
+
+def test_isotropy_loss_values():
+    spheres = torch.tensor([[0.1, 0.1, 0.1], [2.0, 2.0, 2.0]])
+    assert isotropy_loss(spheres).item() == 0.0
+    needle = torch.tensor([[0.3, 0.0, 0.0]])  # mean 0.1; deviations 0.2, 0.1, 0.1
+    assert isotropy_loss(needle).item() == pytest.approx(0.4 / 3)
+    assert isotropy_loss(needle, relative=True).item() == pytest.approx(4.0 / 3)
+    assert isotropy_loss(needle * 10, relative=True).item() == pytest.approx(4.0 / 3)  # unit free
+
+
+def test_isotropy_gradient_makes_gaussians_rounder():
+    log_scales = torch.log(torch.tensor([[0.5, 0.05, 0.05], [0.2, 0.2, 0.01]])).requires_grad_(True)
+    before = isotropy_loss(log_scales.exp())
+    before.backward()
+    with torch.no_grad():
+        stepped = log_scales - 0.1 * log_scales.grad / log_scales.grad.abs().max()
+    assert isotropy_loss(stepped.exp()).item() < before.item()
+
+
+def test_scale_cap_and_empty_maps():
+    scales = torch.tensor([[0.1, 0.2, 0.5], [1.0, 0.0, 0.0]], requires_grad=True)
+    value = scale_cap_loss(scales, max_scale=0.3)  # excesses 0.2 and 0.7
+    assert value.item() == pytest.approx((0.2**2 + 0.7**2) / 6)
+    value.backward()
+    assert scales.grad[0, 0] == 0.0 and scales.grad[1, 0].item() == pytest.approx(2 * 0.7 / 6)
+    empty = torch.zeros(0, 3, requires_grad=True)
+    for loss in (isotropy_loss(empty), scale_cap_loss(empty, 1.0)):
+        assert loss.item() == 0.0 and loss.requires_grad
+
+
+def test_bad_shapes_raise():
+    with pytest.raises(ValueError):
+        isotropy_loss(torch.zeros(3))
+    with pytest.raises(ValueError):
+        rgbd_l1_loss(torch.zeros(4, 4, 3), torch.zeros(4, 4), torch.zeros(4, 5, 3), torch.zeros(4, 5), alpha_color=0.5)
+    with pytest.raises(ValueError):
+        image_gradient_mask(torch.zeros(4, 4), 100.0)
