@@ -1,0 +1,213 @@
+"""Image metrics of the rendering evaluation: PSNR, SSIM, depth L1, and area resampling of ground truth.
+
+Conventions (the protocol that ``metrics.json`` states):
+
+* Images are float in [0, 1], channels last: ``[..., H, W, C]``; any leading dimensions are a batch and every
+  metric returns one value per image (``[...]``). Depth is metres, ``[..., H, W]``, 0 = no measurement.
+* PSNR: ``10 log10(max_value^2 / MSE)``, the MSE over all channels of the selected pixels (all pixels when no
+  mask is given). Identical images give ``+inf``. No clamping or quantisation is applied (3DGS's evaluation
+  reads back 8-bit PNGs; quantise before calling if you want to reproduce that exactly).
+* SSIM: Wang et al. 2004 with the 11x11 Gaussian window of sigma 1.5, ``C1 = (0.01 L)^2``, ``C2 = (0.03 L)^2``,
+  computed per channel and averaged over channels and pixels, exactly as the Gaussian-splatting papers' code
+  (3DGS ``utils/loss_utils.ssim``, also used by Mip-Splatting, MonoGS, SplaTAM) computes it: ``padding="same"``
+  convolves with *zero* padding of ``window // 2`` pixels and averages the full ``H x W`` map (the border
+  windows see zeros). ``padding="valid"`` averages only windows that lie inside the image (MATLAB/skimage-like
+  ``valid`` region; equal to kornia's ``ssim(..., padding="valid")``).
+* Depth L1: mean ``|D - D_gt|`` in metres over pixels whose ground-truth depth is valid (finite and > 0),
+  optionally intersected with a caller's mask.
+* ``resize_area``: exact box-filter (area-averaging) resampling for any positive factor, consistent with
+  :meth:`mipslam.types.Intrinsics.scaled`: output pixel j covers the input interval ``[j / f, (j + 1) / f]``
+  (pixel edges at integers, i.e. the pixel-centre convention), and the output size is ``round(f * size)``.
+  Downsampling averages every input pixel with its overlap area (never bilinear sampling, which aliases the
+  ground truth); upsampling replicates pixels and blends across the edges an output pixel straddles.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+
+from mipslam.errors import EvaluationError
+
+__all__ = [
+    "ImageMetrics",
+    "depth_l1",
+    "gaussian_window_1d",
+    "image_metrics",
+    "psnr",
+    "resize_area",
+    "ssim",
+]
+
+
+def _check_pair(image: torch.Tensor, target: torch.Tensor, what: str, min_dims: int) -> None:
+    if image.shape != target.shape:
+        raise EvaluationError(f"{what}: rendered {tuple(image.shape)} and ground truth {tuple(target.shape)} differ in shape")
+    if image.dim() < min_dims:
+        raise EvaluationError(f"{what}: expected at least {min_dims} dimensions, got shape {tuple(image.shape)}")
+
+
+def psnr(
+    image: torch.Tensor,  # [..., H, W, C] in [0, max_value]
+    target: torch.Tensor,  # [..., H, W, C]
+    *,
+    mask: torch.Tensor | None = None,  # [..., H, W] bool (broadcast over the batch)
+    max_value: float = 1.0,
+) -> torch.Tensor:  # [...] dB
+    """Peak signal-to-noise ratio per image, ``10 log10(max_value^2 / MSE)`` over the (masked) pixels."""
+    _check_pair(image, target, "PSNR", 3)
+    squared = (image - target).pow(2).mean(dim=-1)  # [..., H, W]
+    if mask is None:
+        mse = squared.mean(dim=(-2, -1))
+    else:
+        if mask.shape[-2:] != squared.shape[-2:]:
+            raise EvaluationError(f"PSNR: mask {tuple(mask.shape)} does not match the images {tuple(image.shape)}")
+        mask = mask.to(torch.bool).expand_as(squared)
+        count = mask.sum(dim=(-2, -1))
+        if bool((count == 0).any()):
+            raise EvaluationError("PSNR: the mask selects no pixel of an image; evaluate it without a mask or skip it")
+        mse = torch.where(mask, squared, 0.0).sum(dim=(-2, -1)) / count
+    return 10.0 * torch.log10(max_value**2 / mse)
+
+
+def gaussian_window_1d(size: int, sigma: float, *, dtype=torch.float64, device=None) -> torch.Tensor:  # [size]
+    """Normalised sampled Gaussian ``exp(-(x - size//2)^2 / (2 sigma^2))`` (the 1D factor of the SSIM window)."""
+    x = torch.arange(size, dtype=torch.float64, device=device) - (size // 2)
+    g = torch.exp(-(x * x) / (2.0 * sigma * sigma))
+    return (g / g.sum()).to(dtype)
+
+
+def ssim(
+    image: torch.Tensor,  # [..., H, W, C] in [0, max_value]
+    target: torch.Tensor,  # [..., H, W, C]
+    *,
+    window_size: int = 11,
+    sigma: float = 1.5,
+    padding: Literal["same", "valid"] = "same",
+    max_value: float = 1.0,
+) -> torch.Tensor:  # [...]
+    """Structural similarity per image (conventions in the module docstring; ``same`` = 3DGS zero padding).
+
+    ``SSIM = (2 mu_x mu_y + C1)(2 sigma_xy + C2) / ((mu_x^2 + mu_y^2 + C1)(sigma_x^2 + sigma_y^2 + C2))`` with
+    Gaussian-weighted local moments; differentiable.
+    """
+    _check_pair(image, target, "SSIM", 3)
+    if window_size % 2 != 1:
+        raise EvaluationError(f"SSIM: window size must be odd, got {window_size}")
+    if padding not in ("same", "valid"):
+        raise EvaluationError(f"SSIM: padding must be 'same' or 'valid', got {padding!r}")
+    batch_shape = image.shape[:-3]
+    height, width, channels = image.shape[-3:]
+    if padding == "valid" and (height < window_size or width < window_size):
+        raise EvaluationError(f"SSIM: 'valid' padding needs images of at least {window_size} px, got {height}x{width}")
+    x = image.reshape(-1, height, width, channels).permute(0, 3, 1, 2)  # [B, C, H, W]
+    y = target.reshape(-1, height, width, channels).permute(0, 3, 1, 2)
+    g = gaussian_window_1d(window_size, sigma, dtype=x.dtype, device=x.device)
+    weight_rows = g.view(1, 1, window_size, 1).expand(channels, 1, window_size, 1)
+    weight_cols = g.view(1, 1, 1, window_size).expand(channels, 1, 1, window_size)
+    pad = window_size // 2 if padding == "same" else 0
+
+    def blur(z: torch.Tensor) -> torch.Tensor:  # [B, C, H, W] -> [B, C, H', W'], separable Gaussian
+        z = torch.nn.functional.conv2d(z, weight_rows, padding=(pad, 0), groups=channels)
+        return torch.nn.functional.conv2d(z, weight_cols, padding=(0, pad), groups=channels)
+
+    c1, c2 = (0.01 * max_value) ** 2, (0.03 * max_value) ** 2
+    mu_x, mu_y = blur(x), blur(y)
+    mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
+    sigma_xx = blur(x * x) - mu_xx
+    sigma_yy = blur(y * y) - mu_yy
+    sigma_xy = blur(x * y) - mu_xy
+    ssim_map = ((2 * mu_xy + c1) * (2 * sigma_xy + c2)) / ((mu_xx + mu_yy + c1) * (sigma_xx + sigma_yy + c2))
+    return ssim_map.mean(dim=(1, 2, 3)).reshape(batch_shape)
+
+
+def depth_l1(
+    depth: torch.Tensor,  # [..., H, W] metres
+    depth_gt: torch.Tensor,  # [..., H, W] metres, 0 = no measurement
+    *,
+    mask: torch.Tensor | None = None,  # [..., H, W] bool, extra restriction (e.g. rendered opacity)
+) -> torch.Tensor:  # [...] metres
+    """Mean absolute depth error in metres over pixels with valid ground truth (and ``mask``), per image."""
+    _check_pair(depth, depth_gt, "depth L1", 2)
+    valid = torch.isfinite(depth_gt) & (depth_gt > 0)
+    if mask is not None:
+        valid = valid & mask.to(torch.bool)
+    count = valid.sum(dim=(-2, -1))
+    if bool((count == 0).any()):
+        raise EvaluationError("depth L1: an image has no pixel with valid ground-truth depth; skip it or report it as missing")
+    error = torch.where(valid, (depth - torch.where(valid, depth_gt, 0.0)).abs(), 0.0)
+    return error.sum(dim=(-2, -1)) / count
+
+
+def _area_weights(size_in: int, size_out: int, factor: float, dtype, device) -> torch.Tensor:  # [out, in]
+    """Row-normalised overlap lengths of output pixel j = input interval [j/f, (j+1)/f] with input pixel i."""
+    lo = torch.arange(size_out, dtype=torch.float64, device=device) / factor  # [out]
+    hi = lo + 1.0 / factor
+    edges = torch.arange(size_in, dtype=torch.float64, device=device)  # [in]
+    overlap = (torch.minimum(hi[:, None], edges[None, :] + 1.0) - torch.maximum(lo[:, None], edges[None, :])).clamp_min(0.0)
+    return (overlap / overlap.sum(dim=1, keepdim=True)).to(dtype)
+
+
+def resize_area(
+    image: torch.Tensor,  # [H, W] or [H, W, C]
+    factor: float,
+    *,
+    valid: torch.Tensor | None = None,  # [H, W] bool: average only these pixels (e.g. depth > 0)
+) -> torch.Tensor:  # [round(f H), round(f W)(, C)]
+    """Area-averaging resample by ``factor`` (< 1 shrinks), consistent with ``Intrinsics.scaled(factor)``.
+
+    With ``valid``, each output pixel is the area-weighted mean of the valid input pixels it covers and 0 where
+    it covers none (so depth holes stay holes instead of pulling depths towards 0). Note that area-averaged
+    depth still mixes surfaces across depth edges; it is the right ground truth for a renderer that
+    alpha-blends depth, not for a geometric depth map.
+    """
+    if not (isinstance(factor, (int, float)) and math.isfinite(factor) and factor > 0):
+        raise EvaluationError(f"resize_area: factor must be a positive number, got {factor!r}")
+    if image.dim() not in (2, 3):
+        raise EvaluationError(f"resize_area: expected [H, W] or [H, W, C], got shape {tuple(image.shape)}")
+    if not image.dtype.is_floating_point:
+        raise EvaluationError(f"resize_area: expected a floating-point image, got {image.dtype}")
+    height, width = image.shape[0], image.shape[1]
+    out_height, out_width = max(1, int(round(height * factor))), max(1, int(round(width * factor)))
+    rows = _area_weights(height, out_height, factor, image.dtype, image.device)  # [h, H]
+    cols = _area_weights(width, out_width, factor, image.dtype, image.device)  # [w, W]
+
+    def apply(z: torch.Tensor) -> torch.Tensor:  # [H, W, C] -> [h, w, C]
+        return torch.einsum("hH,HWc,wW->hwc", rows, z, cols)
+
+    hwc = image if image.dim() == 3 else image[..., None]
+    if valid is None:
+        out = apply(hwc)
+    else:
+        if valid.shape != (height, width):
+            raise EvaluationError(f"resize_area: valid mask {tuple(valid.shape)} must be [{height}, {width}]")
+        weight = valid.to(image.dtype)[..., None]  # [H, W, 1]
+        numerator = apply(torch.where(weight > 0, hwc, 0.0))
+        coverage = apply(weight)
+        out = torch.where(coverage > 0, numerator / coverage.clamp_min(torch.finfo(image.dtype).tiny), 0.0)
+    return out if image.dim() == 3 else out[..., 0]
+
+
+@dataclass(frozen=True)
+class ImageMetrics:
+    """Metrics of one rendered view against its ground truth (plain floats, for metrics.json)."""
+
+    psnr: float  # dB
+    ssim: float
+    depth_l1: float | None  # metres; None when no depth ground truth was evaluated
+
+
+def image_metrics(
+    color: torch.Tensor,  # [H, W, 3] rendered, [0, 1]
+    color_gt: torch.Tensor,  # [H, W, 3]
+    depth: torch.Tensor | None = None,  # [H, W] metres
+    depth_gt: torch.Tensor | None = None,  # [H, W] metres, 0 = none
+) -> ImageMetrics:
+    """PSNR, SSIM (3DGS convention) and depth L1 of one view, computed without gradients."""
+    with torch.no_grad():
+        value_depth = None
+        if depth is not None and depth_gt is not None:
+            value_depth = float(depth_l1(depth, depth_gt))
+        return ImageMetrics(psnr=float(psnr(color, color_gt)), ssim=float(ssim(color, color_gt)), depth_l1=value_depth)

@@ -1,0 +1,188 @@
+"""PSNR, SSIM, depth L1 and area resampling (mipslam.evaluation.image_metrics) against independent references."""
+from __future__ import annotations
+
+import math
+
+import cv2
+import kornia
+import numpy as np
+import pytest
+import torch
+
+from mipslam.errors import EvaluationError
+from mipslam.evaluation.image_metrics import depth_l1, image_metrics, psnr, resize_area, ssim
+from mipslam.types import Intrinsics
+
+
+def _pair(height=24, width=30, seed=0, noise=0.1):
+    generator = torch.Generator().manual_seed(seed)
+    clean = torch.rand(height, width, 3, generator=generator)
+    noisy = (clean + noise * torch.randn(height, width, 3, generator=generator)).clamp(0, 1)
+    return noisy, clean
+
+
+def _ssim_reference(x: np.ndarray, y: np.ndarray, zero_padded: bool) -> float:
+    """Float64 SSIM with explicit window sums: 11x11 Gaussian (sigma 1.5), zero padding ('same') or 'valid'."""
+    x, y = x.astype(np.float64), y.astype(np.float64)
+    offsets = np.arange(11) - 5
+    g = np.exp(-(offsets**2) / (2 * 1.5**2))
+    window = np.outer(g, g) / np.outer(g, g).sum()
+    height, width, channels = x.shape
+    c1, c2 = 0.01**2, 0.03**2
+    centres = [(i, j) for i in range(height) for j in range(width)]
+    if not zero_padded:
+        centres = [(i, j) for i, j in centres if 5 <= i < height - 5 and 5 <= j < width - 5]
+    values = []
+    for channel in range(channels):
+        for i, j in centres:
+            sums = np.zeros(5)  # mu_x, mu_y, E[x^2], E[y^2], E[xy]
+            for a in range(11):
+                for b in range(11):
+                    u, v = i + a - 5, j + b - 5
+                    if 0 <= u < height and 0 <= v < width:  # outside: zero padding contributes 0
+                        p, q, w = x[u, v, channel], y[u, v, channel], window[a, b]
+                        sums += w * np.array([p, q, p * p, q * q, p * q])
+            mx, my, exx, eyy, exy = sums
+            sxx, syy, sxy = exx - mx * mx, eyy - my * my, exy - mx * my
+            values.append(((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2)))
+    return float(np.mean(values))
+
+
+def test_psnr_known_value_and_mask():
+    target = torch.full((10, 10, 3), 0.5)
+    image = target + 0.1  # MSE = 0.01 -> 20 dB
+    assert psnr(image, target).item() == pytest.approx(20.0, abs=1e-4)
+    image[:5] += 0.9  # top half way off; the mask keeps only the bottom half
+    mask = torch.zeros(10, 10, dtype=torch.bool)
+    mask[5:] = True
+    assert psnr(image, target, mask=mask).item() == pytest.approx(20.0, abs=1e-4)
+    assert psnr(target, target).item() == math.inf
+    with pytest.raises(EvaluationError):
+        psnr(image, target, mask=torch.zeros(10, 10, dtype=torch.bool))
+
+
+def test_psnr_is_per_image_in_a_batch_and_matches_kornia():
+    a, b = _pair(seed=1)
+    c, d = _pair(seed=2, noise=0.2)
+    batch = psnr(torch.stack([a, c]), torch.stack([b, d]))
+    assert batch.shape == (2,)
+    assert batch[0].item() == pytest.approx(kornia.metrics.psnr(a, b, 1.0).item(), abs=1e-4)
+    assert batch[1].item() == pytest.approx(psnr(c, d).item(), abs=1e-5)
+    assert batch[1] < batch[0]
+
+
+@pytest.mark.parametrize("zero_padded", [True, False])
+def test_ssim_matches_float64_window_sum_reference(zero_padded):
+    image, target = _pair(16, 18, seed=3)
+    padding = "same" if zero_padded else "valid"
+    value = ssim(image.double(), target.double(), padding=padding).item()
+    reference = _ssim_reference(image.numpy(), target.numpy(), zero_padded)
+    assert value == pytest.approx(reference, abs=1e-12)
+    assert ssim(image, target, padding=padding).item() == pytest.approx(reference, abs=2e-5)
+
+
+def test_ssim_valid_matches_kornia_and_same_differs_only_by_border_convention():
+    image, target = _pair(40, 48, seed=4)
+    to_nchw = lambda z: z.permute(2, 0, 1)[None]  # noqa: E731
+    kornia_valid = kornia.metrics.ssim(to_nchw(image), to_nchw(target), 11, padding="valid", eps=0.0).mean()
+    assert ssim(image, target, padding="valid").item() == pytest.approx(kornia_valid.item(), abs=1e-6)
+    # kornia's 'same' pads by reflection; ours (3DGS) by zeros: the interior of the maps is identical, so the
+    # difference between the two means comes only from the border band
+    kornia_same = kornia.metrics.ssim(to_nchw(image), to_nchw(target), 11, padding="same", eps=0.0).mean()
+    assert abs(ssim(image, target).item() - kornia_same.item()) < 0.02
+
+
+def test_ssim_identity_symmetry_and_degradation():
+    image, target = _pair(32, 32, seed=5)
+    assert ssim(target, target).item() == pytest.approx(1.0, abs=1e-6)
+    assert ssim(image, target).item() == pytest.approx(ssim(target, image).item(), abs=1e-7)
+    blurred = torch.from_numpy(cv2.GaussianBlur(target.numpy(), (5, 5), 1.5))
+    more_noise, _ = _pair(32, 32, seed=5, noise=0.3)
+    assert ssim(more_noise, target) < ssim(image, target) < 1.0
+    assert ssim(blurred, target) < 1.0
+
+
+def test_ssim_is_differentiable():
+    image, target = _pair(16, 16, seed=6)
+    image.requires_grad_(True)
+    value = ssim(image, target)
+    value.backward()
+    assert torch.isfinite(image.grad).all() and image.grad.abs().sum() > 0
+
+
+def test_depth_l1_on_valid_pixels_only():
+    depth_gt = torch.full((8, 8), 2.0)
+    depth_gt[:, :2] = 0.0  # no measurement
+    depth = depth_gt + 0.05
+    depth[:, :2] = 100.0  # garbage where there is no ground truth
+    assert depth_l1(depth, depth_gt).item() == pytest.approx(0.05, abs=1e-6)
+    mask = torch.zeros(8, 8, dtype=torch.bool)
+    mask[0, 5] = True
+    depth[0, 5] = 2.5
+    assert depth_l1(depth, depth_gt, mask=mask).item() == pytest.approx(0.5, abs=1e-6)
+    with pytest.raises(EvaluationError):
+        depth_l1(depth, torch.zeros(8, 8))
+
+
+def test_resize_area_integer_factor_is_block_mean():
+    image = torch.rand(12, 16, 3, dtype=torch.float64)
+    small = resize_area(image, 0.25)
+    assert small.shape == (3, 4, 3)
+    assert torch.allclose(small[1, 2], image[4:8, 8:12].mean(dim=(0, 1)))
+    assert torch.allclose(small.mean(dim=(0, 1)), image.mean(dim=(0, 1)))  # area averaging preserves the mean
+
+
+@pytest.mark.parametrize("shape,factor", [((480, 639), 1 / 3), ((100, 150), 0.4), ((24, 32), 0.125), ((32, 40), 0.75)])
+def test_resize_area_matches_opencv_inter_area(shape, factor):
+    generator = torch.Generator().manual_seed(7)
+    image = torch.rand(*shape, 3, generator=generator, dtype=torch.float64)
+    ours = resize_area(image, factor)
+    theirs = cv2.resize(image.numpy(), (ours.shape[1], ours.shape[0]), interpolation=cv2.INTER_AREA)
+    assert np.abs(ours.numpy() - theirs).max() < 1e-6
+
+
+def test_resize_area_upsampling_replicates_and_size_follows_intrinsics():
+    image = torch.arange(6.0).reshape(2, 3)
+    up = resize_area(image, 2.0)
+    assert torch.equal(up, image.repeat_interleave(2, 0).repeat_interleave(2, 1))
+    intrinsics = Intrinsics(fx=100.0, fy=100.0, cx=319.5, cy=239.5, width=640, height=480)
+    for factor in (0.125, 0.3, 2.0):
+        scaled = intrinsics.scaled(factor)
+        assert resize_area(torch.zeros(480, 640), factor).shape == (scaled.height, scaled.width)
+
+
+def test_resize_area_does_not_alias_a_checkerboard():
+    # a one-pixel checkerboard averages to flat grey; nearest/bilinear sampling at the pixel centres does not
+    rows, cols = torch.meshgrid(torch.arange(64), torch.arange(64), indexing="ij")
+    checker = ((rows + cols) % 2).double()
+    small = resize_area(checker, 0.25)
+    assert torch.allclose(small, torch.full((16, 16), 0.5, dtype=torch.float64))
+    sampled = torch.nn.functional.interpolate(checker[None, None], scale_factor=0.25, mode="nearest")[0, 0]
+    assert torch.equal(sampled, torch.zeros(16, 16, dtype=torch.float64))  # point sampling aliases to black
+
+
+def test_resize_area_valid_mask_keeps_holes_out_of_the_mean():
+    depth = torch.tensor([[2.0, 0.0], [4.0, 0.0]])
+    valid = depth > 0
+    assert resize_area(depth, 0.5, valid=valid).item() == pytest.approx(3.0)
+    assert resize_area(depth, 0.5).item() == pytest.approx(1.5)
+    holes = resize_area(torch.zeros(4, 4), 0.5, valid=torch.zeros(4, 4, dtype=torch.bool))
+    assert torch.equal(holes, torch.zeros(2, 2))
+
+
+def test_image_metrics_bundle():
+    image, target = _pair(16, 16, seed=8)
+    depth_gt = torch.full((16, 16), 1.5)
+    result = image_metrics(image, target, depth_gt + 0.01, depth_gt)
+    assert result.psnr == pytest.approx(psnr(image, target).item())
+    assert result.ssim == pytest.approx(ssim(image, target).item())
+    assert result.depth_l1 == pytest.approx(0.01, abs=1e-6)
+    assert image_metrics(image, target).depth_l1 is None
+
+
+def test_resize_area_inexact_size_follows_the_intrinsics_mapping():
+    # 11 px at 1/3 -> round(3.67) = 4 px; output pixel j covers input [3j, 3j + 3]: the last one sees pixels 9, 10
+    row = torch.arange(11.0, dtype=torch.float64)[None, :]
+    out = resize_area(row.expand(3, 11), 1 / 3)
+    assert out.shape == (1, 4)
+    assert torch.allclose(out[0], torch.tensor([1.0, 4.0, 7.0, 9.5], dtype=torch.float64))
