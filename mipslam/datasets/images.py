@@ -1,0 +1,171 @@
+"""Reading and downscaling RGB-D images, with validation at the boundary.
+
+Every function here is pure (arrays in, arrays out) except the two readers, which read one file.
+A reader either returns a valid image or raises :class:`~mipslam.errors.DatasetError` naming the
+file; it never returns a half-decoded image:
+
+* OpenCV's decoder pads a truncated JPEG with grey and only warns ("Premature end of JPEG file"),
+  so a JPEG must end its last scan with the end-of-image marker (``FF D9`` after the last
+  ``FF DA``); a PNG must contain its ``IEND`` chunk. Other formats rely on the decoder.
+* Colour must be 8-bit with 3 channels (BGR in the file, RGB out); depth must be 16-bit with one
+  channel (the stored value divided by ``depth_scale`` is metres, 0 = no measurement).
+
+Downscaling by an integer factor ``d`` (crop to multiples of ``d`` at the right and bottom first,
+which leaves the principal point unchanged):
+
+* colour: the mean over each ``d x d`` block (area averaging; the box filter of the larger pixels).
+* depth: never the mean across a depth edge. Per block, the valid samples (finite, > 0) are sorted
+  and split into surface clusters wherever two consecutive sorted values differ by more than
+  ``edge_gap`` relative to the smaller one (5 % by default: far above sensor quantisation and
+  noise within one block, far below a typical occlusion step). The output is the mean of the
+  *nearest* cluster (the surface in front, the one that occludes the rest inside the big pixel).
+  A block with fewer than ``min_valid_fraction`` (default 1/2) valid samples is invalid (0).
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from mipslam.errors import DatasetError
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+JPEG_SIGNATURE = b"\xff\xd8"
+DEPTH_EDGE_RELATIVE_GAP = 0.05
+DEPTH_MIN_VALID_FRACTION = 0.5
+
+
+def _read_bytes(path: Path, what: str) -> np.ndarray:
+    try:
+        data = np.fromfile(str(path), dtype=np.uint8)
+    except FileNotFoundError:
+        raise DatasetError(path, f"{what} image file not found") from None
+    except (IsADirectoryError, PermissionError, OSError) as exc:
+        raise DatasetError(path, f"cannot read {what} image ({exc.strerror or exc})") from None
+    if data.size == 0:
+        raise DatasetError(path, f"{what} image file is empty; re-copy or regenerate it")
+    return data
+
+
+def _check_complete(data: np.ndarray, path: Path, what: str) -> None:
+    """Reject files whose container shows they were cut short (see module docstring)."""
+    head = data[:8].tobytes()
+    raw = data.tobytes()
+    truncated = False
+    if head.startswith(PNG_SIGNATURE):
+        truncated = raw.rfind(b"IEND") < 0
+    elif head.startswith(JPEG_SIGNATURE):
+        last_scan = raw.rfind(b"\xff\xda")
+        truncated = last_scan < 0 or raw.rfind(b"\xff\xd9") < last_scan
+    if truncated:
+        raise DatasetError(path, f"{what} image is truncated (the file ends before the image data does); re-copy it")
+
+
+def _decode(path: Path, what: str) -> np.ndarray:
+    data = _read_bytes(path, what)
+    _check_complete(data, path, what)
+    try:
+        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        raise DatasetError(path, f"cannot decode {what} image ({str(exc).strip().splitlines()[-1]})") from None
+    if image is None:
+        raise DatasetError(path, f"unreadable or truncated {what} image (OpenCV cannot decode it); re-copy it")
+    return image
+
+
+def read_color(path: str | Path) -> np.ndarray:
+    """Read an 8-bit 3-channel image file as float32 RGB in [0, 1].  -> [H, W, 3]
+
+    Raises DatasetError (naming ``path``) for a missing, empty, truncated or undecodable file and
+    for any other bit depth or channel count.
+    """
+    path = Path(path)
+    image = _decode(path, "colour")
+    if image.dtype != np.uint8:
+        raise DatasetError(path, f"colour image must be 8-bit, got {image.dtype} ({_bits(image)}-bit); convert it to 8-bit RGB")
+    channels = 1 if image.ndim == 2 else image.shape[2]
+    if image.ndim != 3 or channels != 3:
+        raise DatasetError(path, f"colour image must have 3 channels (RGB), got {channels}; convert it to 8-bit RGB")
+    rgb = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    return rgb.astype(np.float32) * np.float32(1.0 / 255.0)
+
+
+def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:
+    """Read a 16-bit single-channel depth image as float32 metres (``value / depth_scale``).  -> [H, W]
+
+    0 (and anything non-finite) means no measurement. Raises DatasetError (naming ``path``) for a
+    missing, empty, truncated or undecodable file and for any other bit depth or channel count.
+    """
+    path = Path(path)
+    if not depth_scale > 0 or not math.isfinite(depth_scale):
+        raise DatasetError(path, f"depth scale must be a positive number, got {depth_scale}")
+    image = _decode(path, "depth")
+    if image.dtype != np.uint16:
+        raise DatasetError(
+            path, f"depth image must be 16-bit (uint16), got {image.dtype} ({_bits(image)}-bit); store depth * scale as uint16 PNG"
+        )
+    if image.ndim != 2:
+        raise DatasetError(path, f"depth image must have 1 channel, got {image.shape[2]}; store it as single-channel uint16 PNG")
+    depth = image.astype(np.float32) / np.float32(depth_scale)
+    depth[~np.isfinite(depth)] = 0.0
+    return depth
+
+
+def _bits(image: np.ndarray) -> int:
+    return image.dtype.itemsize * 8
+
+
+def crop_to_multiple(image: np.ndarray, factor: int) -> np.ndarray:
+    """Crop the right and bottom so height and width are multiples of ``factor``.  [H, W, ...] -> [H', W', ...]"""
+    height, width = image.shape[:2]
+    return image[: height - height % factor, : width - width % factor]
+
+
+def _blocks(image: np.ndarray, factor: int) -> np.ndarray:
+    """[H, W, ...] (multiples of factor) -> [H/f, W/f, f*f, ...]"""
+    height, width = image.shape[:2]
+    rest = image.shape[2:]
+    blocks = image.reshape(height // factor, factor, width // factor, factor, *rest)
+    blocks = np.moveaxis(blocks, 2, 1)  # [h, w, f, f, ...]
+    return blocks.reshape(height // factor, width // factor, factor * factor, *rest)
+
+
+def downscale_color(color: np.ndarray, factor: int) -> np.ndarray:
+    """Area-average an image by an integer factor.  color [H, W, C] float -> [H // f, W // f, C]"""
+    if factor == 1:
+        return color
+    cropped = crop_to_multiple(color, factor)
+    return _blocks(cropped, factor).mean(axis=2, dtype=np.float64).astype(color.dtype)
+
+
+def downscale_depth(
+    depth: np.ndarray,
+    factor: int,
+    edge_gap: float = DEPTH_EDGE_RELATIVE_GAP,
+    min_valid_fraction: float = DEPTH_MIN_VALID_FRACTION,
+) -> np.ndarray:
+    """Downscale depth by an integer factor without mixing surfaces.  depth [H, W] metres -> [H // f, W // f]
+
+    Per ``f x f`` block: the mean of the nearest surface cluster (clusters split where sorted
+    neighbours differ by more than ``edge_gap`` relative), or 0 where fewer than
+    ``ceil(min_valid_fraction * f * f)`` samples are valid. See the module docstring.
+    """
+    if factor == 1:
+        return depth
+    cropped = crop_to_multiple(depth, factor).astype(np.float64)
+    valid = np.isfinite(cropped) & (cropped > 0)
+    samples = np.where(valid, cropped, np.inf)
+    blocks = np.sort(_blocks(samples, factor), axis=2)  # [h, w, f*f], invalid (+inf) last
+    count = np.isfinite(blocks).sum(axis=2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = blocks[..., 1:] / blocks[..., :-1]
+    is_break = ratio > 1.0 + edge_gap  # inf / finite breaks too; inf / inf is nan -> False
+    cluster = np.concatenate([np.zeros_like(is_break[..., :1]), np.cumsum(is_break, axis=2) > 0], axis=2)
+    in_nearest = ~cluster & np.isfinite(blocks)
+    size = in_nearest.sum(axis=2)
+    total = np.where(in_nearest, blocks, 0.0).sum(axis=2)
+    needed = max(1, math.ceil(min_valid_fraction * factor * factor))
+    out = np.where((count >= needed) & (size > 0), total / np.maximum(size, 1), 0.0)
+    return out.astype(np.float32)
