@@ -1,0 +1,256 @@
+"""One run's output folder and the atomic file writes every output goes through.
+
+Layout (DESIGN.md, "Outputs of a run")::
+
+    RUN/config.yaml      resolved config
+    RUN/traj_est.txt     estimated trajectory, TUM format
+    RUN/traj_gt.txt      ground truth resampled to the estimated stamps, TUM format
+    RUN/keyframes.txt    keyframe list
+    RUN/map.ply          the map in the standard 3DGS PLY layout
+    RUN/checkpoints/     atomic checkpoints (mipslam.checkpoint)
+    RUN/metrics.json     evaluation
+    RUN/timings.json     per stage and per frame timings
+    RUN/loops.json       accepted loop closures
+    RUN/report/          plots
+
+Atomic write protocol (used for every file above): the bytes go to a temporary file in the
+*same* folder (so the rename never crosses a file system), the file is flushed and fsync'ed,
+``os.replace`` puts it in place, and the folder is fsync'ed so the rename itself is durable.
+A crash at any moment leaves either the old complete file or the new complete file under the
+final name, never a partial one; a failed write removes its temporary file.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, BinaryIO, Iterator
+
+from mipslam.errors import MipslamError
+
+logger = logging.getLogger(__name__)
+
+TEMP_SUFFIX = ".tmp"
+
+
+def fsync_directory(folder: str | Path) -> None:
+    """Make a rename inside ``folder`` durable (no-op where the OS cannot open folders)."""
+    flags = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0)
+    try:
+        fd = os.open(str(folder), flags)
+    except OSError as exc:  # e.g. Windows cannot open a directory; the rename is still atomic
+        logger.debug("cannot open %s to fsync it: %s", folder, exc)
+        return
+    try:
+        os.fsync(fd)
+    except OSError as exc:  # some file systems (network, tmpfs variants) refuse fsync on folders
+        logger.debug("fsync of folder %s failed: %s", folder, exc)
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | Path, *, error_type: type[MipslamError] = MipslamError) -> Iterator[BinaryIO]:
+    """Open a temporary binary file next to ``path``; on clean exit it atomically becomes ``path``.
+
+    If the body raises (including KeyboardInterrupt), the temporary file is removed and
+    ``path`` is untouched. An ``OSError`` (disk full, permission denied) is re-raised as
+    ``error_type`` with a message naming ``path``.
+    """
+    path = Path(path)
+    folder = path.parent
+    try:
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=TEMP_SUFFIX, dir=folder)
+    except OSError as exc:
+        raise error_type(
+            f"{path}: cannot create a file in {folder} ({exc.strerror or exc}); "
+            "check that the folder exists and is writable"
+        ) from exc
+    tmp_path = Path(tmp_name)
+    completed = False
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            # mkstemp creates 0600; give the file the mode the old one had (or a normal 0644).
+            try:
+                mode = path.stat().st_mode & 0o777
+            except FileNotFoundError:
+                mode = 0o644
+            if hasattr(os, "fchmod"):
+                os.fchmod(handle.fileno(), mode)
+            yield handle
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp_path, path)
+        completed = True
+        fsync_directory(folder)
+    except OSError as exc:
+        raise error_type(
+            f"{path}: write failed ({exc.strerror or exc}); the previous version (if any) is unchanged. "
+            "Free disk space or choose another output folder"
+        ) from exc
+    finally:
+        if not completed:
+            with contextlib.suppress(FileNotFoundError):
+                tmp_path.unlink()
+
+
+def write_bytes_atomic(path: str | Path, data: bytes, *, error_type: type[MipslamError] = MipslamError) -> Path:
+    """Write ``data`` to ``path`` atomically (see the module docstring). Returns ``path``."""
+    with atomic_write(path, error_type=error_type) as handle:
+        handle.write(data)
+    return Path(path)
+
+
+def write_text_atomic(path: str | Path, text: str, *, error_type: type[MipslamError] = MipslamError) -> Path:
+    """Write UTF-8 ``text`` to ``path`` atomically. Returns ``path``."""
+    return write_bytes_atomic(path, text.encode("utf-8"), error_type=error_type)
+
+
+def _json_default(value: Any) -> Any:
+    """Plain values for numpy/torch scalars and arrays, paths, sets (anything else is an error)."""
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, (set, frozenset)):
+        return sorted(value)
+    if hasattr(value, "tolist"):  # numpy arrays/scalars, torch tensors
+        return value.tolist()
+    raise TypeError(f"object of type {type(value).__name__} is not JSON serialisable")
+
+
+def _first_non_finite(obj: Any, where: str = "") -> str | None:
+    """Dotted key of the first NaN/inf float inside ``obj`` (None when all finite)."""
+    if isinstance(obj, float):
+        return None if math.isfinite(obj) else (where or "<root>")
+    if isinstance(obj, dict):
+        for key, value in obj.items():
+            found = _first_non_finite(value, f"{where}.{key}" if where else str(key))
+            if found is not None:
+                return found
+    if isinstance(obj, (list, tuple)):
+        for i, value in enumerate(obj):
+            found = _first_non_finite(value, f"{where}[{i}]")
+            if found is not None:
+                return found
+    return None
+
+
+def write_json_atomic(path: str | Path, obj: Any, *, indent: int | None = 2,
+                      error_type: type[MipslamError] = MipslamError) -> Path:
+    """Write ``obj`` as strict JSON (no NaN/Infinity, which JSON does not have) atomically.
+
+    numpy/torch values are converted with ``.tolist()``. A non-finite float is refused with an
+    error naming its key, so callers decide explicitly (e.g. write ``None``) instead of producing
+    a file that strict JSON readers reject.
+    """
+    try:
+        text = json.dumps(obj, indent=indent, default=_json_default, allow_nan=False)
+    except ValueError as exc:
+        plain = json.loads(json.dumps(obj, default=_json_default))  # NaN survives this round trip
+        key = _first_non_finite(plain)
+        raise error_type(f"{path}: value at '{key}' is not finite; JSON cannot hold NaN/inf (write null instead)") from exc
+    except TypeError as exc:
+        raise error_type(f"{path}: cannot encode as JSON ({exc})") from exc
+    return write_text_atomic(path, text + "\n", error_type=error_type)
+
+
+class RunFolder:
+    """Paths of one run's outputs (see the module docstring); :meth:`create` makes and checks them."""
+
+    CHECKPOINTS = "checkpoints"
+    REPORT = "report"
+
+    def __init__(self, path: str | Path):
+        self.root = Path(path)
+
+    def __repr__(self) -> str:
+        return f"RunFolder({str(self.root)!r})"
+
+    # --------------------------------------------------------------------------- paths
+    @property
+    def config_yaml(self) -> Path:
+        return self.root / "config.yaml"
+
+    @property
+    def traj_est(self) -> Path:
+        return self.root / "traj_est.txt"
+
+    @property
+    def traj_gt(self) -> Path:
+        return self.root / "traj_gt.txt"
+
+    @property
+    def keyframes(self) -> Path:
+        return self.root / "keyframes.txt"
+
+    @property
+    def map_ply(self) -> Path:
+        return self.root / "map.ply"
+
+    @property
+    def checkpoints(self) -> Path:
+        return self.root / self.CHECKPOINTS
+
+    @property
+    def metrics(self) -> Path:
+        return self.root / "metrics.json"
+
+    @property
+    def timings(self) -> Path:
+        return self.root / "timings.json"
+
+    @property
+    def loops(self) -> Path:
+        return self.root / "loops.json"
+
+    @property
+    def report(self) -> Path:
+        return self.root / self.REPORT
+
+    # --------------------------------------------------------------------------- creation
+    def create(self) -> "RunFolder":
+        """Create the folder, ``checkpoints/`` and ``report/``; check that files can be written.
+
+        Raises MipslamError naming the folder when it cannot be created or written (read-only
+        location, a file in the way, permission denied). Existing outputs are left alone.
+        """
+        if self.root.exists() and not self.root.is_dir():
+            raise MipslamError(f"{self.root}: run folder path exists and is not a folder; choose another output path")
+        for folder in (self.root, self.checkpoints, self.report):
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise MipslamError(
+                    f"{folder}: cannot create the run folder ({exc.strerror or exc}); choose a writable output path"
+                ) from exc
+        self.check_writable()
+        return self
+
+    def check_writable(self) -> None:
+        """Write and delete a probe file in the run folder; MipslamError if that fails."""
+        try:
+            fd, probe = tempfile.mkstemp(prefix=".write_probe.", dir=self.root)
+        except OSError as exc:
+            raise MipslamError(
+                f"{self.root}: run folder is not writable ({exc.strerror or exc}); "
+                "fix its permissions or choose another output path"
+            ) from exc
+        os.close(fd)
+        os.unlink(probe)
+
+    def remove_stale_temporaries(self) -> list[Path]:
+        """Delete temporary files a killed process left behind (``.NAME.*.tmp``); returns them."""
+        removed = []
+        for folder in (self.root, self.checkpoints, self.report):
+            if not folder.is_dir():
+                continue
+            for tmp in folder.glob(f".*{TEMP_SUFFIX}"):
+                with contextlib.suppress(FileNotFoundError):
+                    tmp.unlink()
+                    removed.append(tmp)
+        if removed:
+            logger.info("removed %d temporary file(s) left by an interrupted run in %s", len(removed), self.root)
+        return removed
