@@ -1,0 +1,207 @@
+"""Keyframe decision, the bounded keyframe window and random past keyframes (pure functions).
+
+Covisibility (our choice: geometric, from depth and poses, so it does not depend on the
+renderer or on how well the map is trained yet). For frames a (current) and b (keyframe):
+the fraction of a's valid-depth pixels (on a ``pixel_stride`` grid) whose back-projected point
+``p_b = inv(T_wc_b) T_wc_a z_a K_a^-1 (u, v, 1)`` (b's camera frame, depth ``z_b``) lies in front
+of b, projects inside b's image, lands on a pixel with valid depth ``d_b`` and agrees with it:
+``|z_b - d_b| <= depth_tolerance * d_b``. Points hidden behind b's surface (z_b much larger) or
+in front of it (b saw free space there) are not covisible. The measure is asymmetric and is 1
+for a camera at rest.
+
+Keyframe rule (thresholds from ``mipslam.config.KeyframeConfig``): the first frame is a
+keyframe; afterwards a frame is one when covisibility with the last keyframe drops below
+``covisibility_threshold``, or the translation from the last keyframe exceeds
+``translation_ratio`` times the scene's median depth (the last keyframe's median valid depth),
+or the rotation exceeds ``rotation_deg``. A frame without any valid depth never becomes a
+keyframe (nothing to map).
+
+Window: newest first; the newest ``keep_newest`` always stay, older ones leave when their
+overlap with the new keyframe falls below ``min_overlap`` and, beyond ``window_size``, the least
+overlapping (then the oldest) leave first (the MonoGS policy, with our covisibility).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import torch
+
+from mipslam.config import KeyframeConfig
+from mipslam.geometry.camera import project, unproject
+from mipslam.geometry.se3 import rotation_angle, se3_inverse, transform_points
+
+DEFAULT_DEPTH_TOLERANCE = 0.1  # relative depth agreement for covisibility
+DEFAULT_PIXEL_STRIDE = 4  # covisibility is evaluated on every 4th pixel in u and v
+DEFAULT_MIN_OVERLAP = 0.05  # window keyframes seeing less of the new keyframe than this leave
+
+
+def covisibility(
+    depth: torch.Tensor,  # [H, W] metres of the current frame, 0 = no measurement
+    T_wc: torch.Tensor,  # [4, 4] current camera to world
+    K: torch.Tensor,  # [3, 3] current intrinsics
+    keyframe_depth: torch.Tensor,  # [H2, W2] metres
+    keyframe_T_wc: torch.Tensor,  # [4, 4]
+    keyframe_K: torch.Tensor | None = None,  # [3, 3]; default: same as K
+    *,
+    depth_tolerance: float = DEFAULT_DEPTH_TOLERANCE,
+    pixel_stride: int = DEFAULT_PIXEL_STRIDE,
+) -> float:
+    """Fraction in [0, 1] of the current frame's valid pixels that the keyframe also sees
+    (module docstring); NaN when the current frame has no valid depth on the sampling grid."""
+    dtype = torch.float64
+    device = depth.device
+    sampled = depth[::pixel_stride, ::pixel_stride].to(dtype)  # [h, w]
+    valid = torch.isfinite(sampled) & (sampled > 0)
+    total = int(valid.sum())
+    if total == 0:
+        return math.nan
+    v, u = torch.nonzero(valid, as_tuple=True)
+    uv = torch.stack([u * pixel_stride, v * pixel_stride], -1).to(dtype)  # [M, 2]
+    K = K.to(device=device, dtype=dtype)
+    K_b = K if keyframe_K is None else keyframe_K.to(device=device, dtype=dtype)
+    points_a = unproject(uv, sampled[v, u], K)  # [M, 3]
+    T_ba = se3_inverse(keyframe_T_wc.to(device=device, dtype=dtype)) @ T_wc.to(device=device, dtype=dtype)
+    points_b = transform_points(T_ba, points_a)  # [M, 3]
+    uv_b, z_b = project(points_b, K_b)
+    height_b, width_b = keyframe_depth.shape
+    col = torch.round(uv_b[:, 0])
+    row = torch.round(uv_b[:, 1])
+    inside = (z_b > 1e-6) & (col >= 0) & (col <= width_b - 1) & (row >= 0) & (row <= height_b - 1)
+    col = col.clamp(0, width_b - 1).long()
+    row = row.clamp(0, height_b - 1).long()
+    d_b = keyframe_depth.to(dtype)[row, col]  # [M]
+    agree = inside & torch.isfinite(d_b) & (d_b > 0) & ((z_b - d_b).abs() <= depth_tolerance * d_b)
+    return float(agree.sum()) / total
+
+
+def median_valid_depth(depth: torch.Tensor) -> float:
+    """Median of the valid (finite, > 0) depths in metres; NaN when there are none.  depth [H, W]"""
+    values = depth[torch.isfinite(depth) & (depth > 0)]
+    return float(values.median()) if values.numel() else math.nan
+
+
+@dataclass(frozen=True)
+class KeyframeDecision:
+    """Why a frame is (or is not) a keyframe, with the measured quantities.
+
+    reasons: the criteria that fired, a subset of ("first", "covisibility", "translation",
+    "rotation"); ("no_valid_depth",) when the frame cannot be a keyframe.
+    """
+
+    is_keyframe: bool
+    reasons: tuple[str, ...]
+    covisibility: float
+    translation_m: float
+    translation_ratio: float  # translation / median scene depth
+    rotation_deg: float
+    median_depth_m: float
+
+
+def decide_keyframe(
+    config: KeyframeConfig,
+    depth: torch.Tensor,  # [H, W] metres
+    T_wc: torch.Tensor,  # [4, 4]
+    K: torch.Tensor,  # [3, 3]
+    last_keyframe_depth: torch.Tensor | None,  # [H2, W2] metres; None before the first keyframe
+    last_keyframe_T_wc: torch.Tensor | None,  # [4, 4]
+    last_keyframe_K: torch.Tensor | None = None,  # [3, 3]; default: same as K
+    *,
+    depth_tolerance: float = DEFAULT_DEPTH_TOLERANCE,
+    pixel_stride: int = DEFAULT_PIXEL_STRIDE,
+) -> KeyframeDecision:
+    """Apply the keyframe rule of the module docstring."""
+    median_current = median_valid_depth(depth)
+    if last_keyframe_T_wc is None or last_keyframe_depth is None:
+        has_depth = not math.isnan(median_current)
+        return KeyframeDecision(has_depth, ("first",) if has_depth else ("no_valid_depth",), math.nan, 0.0, 0.0,
+                                0.0, median_current)
+    covis = covisibility(depth, T_wc, K, last_keyframe_depth, last_keyframe_T_wc, last_keyframe_K,
+                         depth_tolerance=depth_tolerance, pixel_stride=pixel_stride)
+    T_kc = se3_inverse(last_keyframe_T_wc.to(torch.float64)) @ T_wc.to(torch.float64)
+    translation = float(T_kc[:3, 3].norm())
+    rotation = math.degrees(float(rotation_angle(T_kc[:3, :3])))
+    median = median_valid_depth(last_keyframe_depth)
+    if math.isnan(median):
+        median = median_current
+    ratio = translation / median if median > 0 else (math.inf if translation > 0 else 0.0)
+    if math.isnan(covis):
+        return KeyframeDecision(False, ("no_valid_depth",), covis, translation, ratio, rotation, median)
+    reasons = []
+    if covis < config.covisibility_threshold:
+        reasons.append("covisibility")
+    if ratio > config.translation_ratio:
+        reasons.append("translation")
+    if rotation > config.rotation_deg:
+        reasons.append("rotation")
+    return KeyframeDecision(bool(reasons), tuple(reasons), covis, translation, ratio, rotation, median)
+
+
+@dataclass(frozen=True)
+class WindowUpdate:
+    """The keyframe window after adding a keyframe (ids newest first) and the ids that left."""
+
+    window: tuple[int, ...]
+    dropped: tuple[int, ...]
+
+
+def update_window(
+    window: Sequence[int],
+    new_keyframe: int,
+    overlap_with_new: Mapping[int, float],
+    *,
+    window_size: int,
+    min_overlap: float = DEFAULT_MIN_OVERLAP,
+    keep_newest: int = 2,
+) -> WindowUpdate:
+    """Insert ``new_keyframe`` at the front of ``window`` (ids, newest first) and bound it.
+
+    overlap_with_new: keyframe id -> covisibility of the new keyframe with it (missing = 0).
+    The newest ``keep_newest`` (including the new one) always stay; others leave when their
+    overlap is below ``min_overlap``; then, while the window is longer than ``window_size``,
+    the remaining keyframe with the lowest overlap leaves (ties: the oldest).
+    """
+    if window_size < 1:
+        raise ValueError(f"window_size must be >= 1, got {window_size}")
+    ordered = [int(new_keyframe)] + [int(k) for k in window if int(k) != int(new_keyframe)]
+    protected = min(max(1, keep_newest), window_size)
+    kept = ordered[:protected]
+    dropped = []
+    candidates = []
+    for kf in ordered[protected:]:
+        overlap = overlap_with_new.get(kf, 0.0)
+        if not overlap >= min_overlap:  # also drops NaN overlaps
+            dropped.append(kf)
+        else:
+            candidates.append(kf)
+    while len(kept) + len(candidates) > window_size:
+        # lowest overlap first; among equals the oldest (last in newest-first order)
+        position = min(range(len(candidates)), key=lambda i: (overlap_with_new.get(candidates[i], 0.0), -i))
+        dropped.append(candidates.pop(position))
+    return WindowUpdate(window=tuple(kept + candidates), dropped=tuple(dropped))
+
+
+def update_window_from_config(window: Sequence[int], new_keyframe: int, overlap_with_new: Mapping[int, float],
+                              config: KeyframeConfig, *, min_overlap: float = DEFAULT_MIN_OVERLAP) -> WindowUpdate:
+    """:func:`update_window` with ``window_size`` from the config."""
+    return update_window(window, new_keyframe, overlap_with_new, window_size=config.window_size,
+                         min_overlap=min_overlap)
+
+
+def select_random_past(
+    keyframes: Sequence[int],
+    window: Sequence[int],
+    count: int,
+    generator: torch.Generator,
+) -> tuple[int, ...]:
+    """Up to ``count`` distinct keyframe ids from ``keyframes`` that are not in ``window``, drawn
+    uniformly without replacement with ``generator`` (deterministic for a given generator
+    state; a draw is made whenever the pool is non-empty so the generator advances the same way
+    on every run). Returned in ascending order."""
+    in_window = {int(k) for k in window}
+    pool = sorted({int(k) for k in keyframes} - in_window)
+    if count <= 0 or not pool:
+        return ()
+    order = torch.randperm(len(pool), generator=generator, device=generator.device)
+    return tuple(sorted(pool[int(i)] for i in order[:count]))
