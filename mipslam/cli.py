@@ -118,7 +118,8 @@ def _cmd_eval(args) -> int:
         from mipslam.io.tum import read_tum_trajectory
 
         metrics = evaluate_trajectory(
-            read_tum_trajectory(args.gt), read_tum_trajectory(args.est),
+            # Ground-truth files of the TUM benchmark contain repeated timestamps (fr2_desk); evo keeps them.
+            read_tum_trajectory(args.gt, allow_duplicate_timestamps=True), read_tum_trajectory(args.est),
             alignment=args.alignment or "se3", association=args.association or "timestamp",
             max_diff=0.02 if args.max_diff is None else args.max_diff,
         ).to_dict()
@@ -140,12 +141,14 @@ def _cmd_eval(args) -> int:
 
 def _format_metrics(metrics: dict) -> str:
     lines = []
-    ate = metrics.get("ate") or metrics.get("trajectory", {}).get("ate")
+    trajectory = metrics.get("trajectory", metrics)
+    ate = trajectory.get("ate")
     if ate:
-        lines.append(f"ATE RMSE {ate['rmse'] * 100:.3f} cm over {ate.get('num_matched', '?')} poses")
-    rpe = metrics.get("rpe") or metrics.get("trajectory", {}).get("rpe")
-    if rpe:
-        lines.append(f"RPE {rpe['trans_rmse'] * 100:.3f} cm, {rpe['rot_rmse_deg']:.3f} deg per step")
+        lines.append(f"ATE RMSE {ate['rmse'] * 100:.3f} cm over {ate['count']} matched poses"
+                     f" ({trajectory['protocol']['alignment']['method']} alignment)")
+    rpe_t, rpe_r = trajectory.get("rpe_translation"), trajectory.get("rpe_rotation")
+    if rpe_t and rpe_r:
+        lines.append(f"RPE {rpe_t['rmse'] * 100:.3f} cm, {rpe_r['rmse']:.3f} deg per step")
     render = metrics.get("render")
     if render:
         for row in render.get("rows", []):
