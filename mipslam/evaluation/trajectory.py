@@ -435,7 +435,7 @@ def evaluate_trajectory(
         matched_est_timestamps=est.timestamps[matches.est_indices],
         matched_gt_timestamps=gt.timestamps[matches.gt_indices],
     )
-    logger.info(
+    logger.debug(
         "ATE RMSE %.6f m over %d matched poses (%s alignment, %s association); RPE %.6f m / %.4f deg",
         metrics.ate.rmse, metrics.num_matched, alignment, association,
         metrics.rpe_translation.rmse, metrics.rpe_rotation.rmse,
