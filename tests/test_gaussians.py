@@ -1,8 +1,6 @@
 """GaussianMap: activations, add/remove with Adam state, anchor motion, state dicts, init and policy."""
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
 

@@ -81,7 +81,8 @@ def quat_multiply_wxyz(q1: torch.Tensor, q2: torch.Tensor) -> torch.Tensor:
 
 @dataclass(frozen=True)
 class ActivatedGaussians:
-    """What the renderer receives (all on the map's device and dtype).
+    """What the renderer receives (all on the map's device and dtype; ``means`` is the map's
+    leaf tensor itself, the others are computed, so treat all of them as read-only).
 
     means      [N, 3] world, metres
     quats      [N, 4] unit quaternions (w, x, y, z), local-to-world rotation
