@@ -187,6 +187,11 @@ def eaa_pixel_opacity(pix_x, pix_y, mean_x, mean_y, cov_xx, cov_xy, cov_yy, cov_
     weight_sum = weight.sum(-1)
     average = (weight * row_fraction).sum(-1) / weight_sum.clamp_min(torch.finfo(weight.dtype).tiny)
     analytic = opacity * outer_mass * (_SQRT_2PI * cond_std) * average
+    # k-sigma clipping along the inner axis too: no pixel outside the Gaussian's k-sigma box (grown by
+    # half a pixel) receives anything, so the image does not depend on how the rasterizer tiles it.
+    var_i = torch.where(cov_yy >= cov_xx, cov_xx, cov_yy)
+    inside = (p_i - mu_i).abs() <= k_sigma * torch.sqrt(var_i) + 0.5
+    analytic = torch.where(inside, analytic, torch.zeros_like(analytic))
     return torch.where(node_counts <= 1, point, analytic)
 
 

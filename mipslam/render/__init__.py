@@ -1,0 +1,240 @@
+"""Differentiable Gaussian rasterizer (DESIGN.md "Renderer contract"; docs/renderer.md).
+
+    from mipslam.render import rasterize
+    out = rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height,
+                    mode="eaa", backend="auto", **options)
+
+``out.color`` [H, W, C], ``out.depth`` [H, W] (sum of T*alpha*z), ``out.alpha`` [H, W]; the options are
+the fields of :class:`RenderOptions`. ``render(gaussians, camera)`` is the same on a map object and a
+:class:`Camera`.
+"""
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import logging
+from dataclasses import dataclass, fields
+
+import torch
+
+from mipslam.errors import BackendUnavailableError, RenderError
+from mipslam.render.footprint import MODE_DILATION, MODES
+from mipslam.render.projection import ProjectedGaussians, project_gaussians
+from mipslam.render.rasterize_torch import FootprintSettings, rasterize_projected
+
+__all__ = ["rasterize", "render", "RenderOptions", "RenderOutput", "Camera", "MODES", "BACKENDS",
+           "available_backends", "project_gaussians", "ProjectedGaussians"]
+
+log = logging.getLogger(__name__)
+
+BACKENDS = ("auto", "torch", "cpu")
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """Renderer options (keyword arguments of :func:`rasterize`); defaults measured in docs/renderer.md.
+
+    near_plane        metres; Gaussians with camera z <= near_plane are dropped
+    k_sigma           k-sigma bound (tile binning, centre-sample cut, EAA clipping)
+    eaa_max_nodes     EAA node cap n_max (1 = undilated point sampling everywhere)
+    eaa_gamma         EAA anisotropy growth: n = n_size (1 + gamma ln kappa)
+    eaa_eta, eaa_tau  EAA boundary emphasis b(d) = 1 + eta exp(-d / tau) (tau in pixels)
+    eaa_point_area    sigma1*sigma2 (px^2) from which a Gaussian is "large" (1 node if also round)
+    filter_3d_scale   Mip-Splatting 3D filter strength s (None or 0 = off; the paper uses 0.2)
+    max_sampling_rate [N] px/metre per Gaussian for the 3D filter (None: max(fx, fy) / z of this camera)
+    pose_only         gradients for viewmat only: the Gaussian parameters are detached (tracking)
+    normalized_depth  also return depth / alpha
+    exact_order       Gauss-Legendre order per axis of ``exact`` mode
+    tile_size         tile edge in pixels
+    pair_budget       max padded (tile pixel x Gaussian x node) evaluations per batch (memory bound)
+    checkpoint        recompute each batch in backward instead of storing it (None: when several batches)
+    """
+
+    near_plane: float = 0.01
+    k_sigma: float = 3.0
+    eaa_max_nodes: int = 8
+    eaa_gamma: float = 1.0
+    eaa_eta: float = 0.0
+    eaa_tau: float = 0.25
+    eaa_point_area: float = 4.0
+    filter_3d_scale: float | None = None
+    max_sampling_rate: torch.Tensor | None = None
+    pose_only: bool = False
+    normalized_depth: bool = False
+    exact_order: int = 20
+    tile_size: int = 16
+    pair_budget: int = 1 << 22
+    checkpoint: bool | None = None
+
+    def __post_init__(self):
+        checks = [
+            (self.near_plane > 0, "near_plane must be positive (metres)"),
+            (self.k_sigma > 0, "k_sigma must be positive"),
+            (int(self.eaa_max_nodes) == self.eaa_max_nodes and self.eaa_max_nodes >= 1,
+             "eaa_max_nodes must be an integer >= 1 (1 = point value)"),
+            (self.eaa_gamma >= 0, "eaa_gamma must be >= 0"),
+            (self.eaa_eta >= 0, "eaa_eta must be >= 0"),
+            (self.eaa_tau > 0, "eaa_tau must be positive (pixels)"),
+            (self.eaa_point_area > 0, "eaa_point_area must be positive (px^2)"),
+            (self.filter_3d_scale is None or self.filter_3d_scale >= 0, "filter_3d_scale must be >= 0 or None"),
+            (self.exact_order >= 1, "exact_order must be >= 1"),
+            (self.tile_size >= 1, "tile_size must be >= 1"),
+            (self.pair_budget >= 1, "pair_budget must be >= 1"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise RenderError(f"render option: {message}")
+
+
+@dataclass(frozen=True)
+class RenderOutput:
+    """Rendered images and per-Gaussian bookkeeping.
+
+    color            [H, W, C]  composited colour on black
+    depth            [H, W]     sum of T * alpha * z (metres)
+    alpha            [H, W]     accumulated opacity 1 - T
+    depth_normalized [H, W]     depth / alpha where alpha > 1e-6, else 0 (None unless asked)
+    means2d          [N, 2] px  projected centres, part of the graph (``retain_grad()`` it before backward
+                                for the 3DGS view-space gradient used by densification)
+    radii            [N] px     k-sigma half extent (max of x and y) of the footprint, 0 where not visible
+    visible          [N] bool   drawn (finite, in front of the near plane, on screen, opacity > 0)
+    n_visible        int
+    depths           [N] metres camera-frame z (0 where not visible)
+    mode, backend    str
+    """
+
+    color: torch.Tensor
+    depth: torch.Tensor
+    alpha: torch.Tensor
+    depth_normalized: torch.Tensor | None
+    means2d: torch.Tensor
+    radii: torch.Tensor
+    visible: torch.Tensor
+    n_visible: int
+    depths: torch.Tensor
+    mode: str
+    backend: str
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera to render from.  viewmat [4, 4] = T_cw (world to camera), K [3, 3]"""
+
+    viewmat: torch.Tensor
+    K: torch.Tensor
+    width: int
+    height: int
+
+
+def _cpu_backend_module():
+    """The compiled CPU backend module if present and built, else None."""
+    if importlib.util.find_spec("mipslam.render.cpu") is None:
+        return None
+    module = importlib.import_module("mipslam.render.cpu")
+    is_available = getattr(module, "is_available", None)
+    if is_available is None or not is_available():
+        return None
+    return module
+
+
+def available_backends() -> tuple[str, ...]:
+    """Backends usable on this machine (``torch`` always)."""
+    return ("torch", "cpu") if _cpu_backend_module() is not None else ("torch",)
+
+
+def _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height):
+    n = means.shape[0] if means.dim() == 2 else -1
+    expected = {"means": (means, (n, 3)), "quats": (quats, (n, 4)), "scales": (scales, (n, 3)),
+                "opacities": (opacities, (n,)), "viewmat": (viewmat, (4, 4)), "K": (K, (3, 3))}
+    for name, (tensor, shape) in expected.items():
+        if not isinstance(tensor, torch.Tensor):
+            raise RenderError(f"rasterize: {name} must be a torch.Tensor, got {type(tensor).__name__}")
+        if tuple(tensor.shape) != shape:
+            raise RenderError(f"rasterize: {name} must have shape {list(shape)}, got {list(tensor.shape)}")
+    if not isinstance(colors, torch.Tensor) or colors.dim() != 2 or colors.shape[0] != n:
+        raise RenderError(f"rasterize: colors must have shape [N={n}, C], got {getattr(colors, 'shape', None)}")
+    tensors = (means, quats, scales, opacities, colors, viewmat, K)
+    if any(not t.is_floating_point() for t in tensors) or len({t.dtype for t in tensors}) != 1:
+        raise RenderError("rasterize: all inputs must share one floating dtype (float32, or float64 for checks), "
+                          f"got {sorted({str(t.dtype) for t in tensors})}")
+    if len({t.device for t in tensors}) != 1:
+        raise RenderError(f"rasterize: all inputs must be on one device, got {sorted({str(t.device) for t in tensors})}")
+    if int(width) != width or int(height) != height or width < 1 or height < 1:
+        raise RenderError(f"rasterize: width and height must be integers >= 1, got {width} x {height}")
+    if not (torch.isfinite(viewmat).all() and torch.isfinite(K).all()):
+        raise RenderError("rasterize: viewmat and K must be finite (a NaN pose cannot be rendered; check the "
+                          "tracking result that produced it)")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise RenderError(f"rasterize: focal lengths must be positive, got fx={float(K[0, 0])}, fy={float(K[1, 1])}")
+
+
+def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+              colors: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
+              mode: str = "eaa", backend: str = "auto", **options) -> RenderOutput:
+    """Render 3D Gaussians (docs/renderer.md).
+
+    means [N, 3] world metres, quats [N, 4] wxyz (normalised inside), scales [N, 3] std-devs in metres
+    (linear), opacities [N] in [0, 1], colors [N, C] (C = 3 for RGB), viewmat [4, 4] world-to-camera
+    (T_cw), K [3, 3]; one float dtype and device for all. Differentiable with respect to all of them
+    (viewmat included). Gaussians with NaN/Inf entries are dropped. ``options``: :class:`RenderOptions`.
+    """
+    if mode not in MODES:
+        raise RenderError(f"rasterize: unknown mode '{mode}'; choose one of {', '.join(MODES)}")
+    if backend not in BACKENDS:
+        raise RenderError(f"rasterize: unknown backend '{backend}'; choose one of {', '.join(BACKENDS)}")
+    valid_names = {f.name for f in fields(RenderOptions)}
+    unknown = sorted(set(options) - valid_names)
+    if unknown:
+        raise RenderError(f"rasterize: unknown option(s) {unknown}; valid options: {sorted(valid_names)}")
+    opts = RenderOptions(**options)
+    _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height)
+    width, height = int(width), int(height)
+
+    if backend in ("auto", "cpu") and means.device.type == "cpu":
+        cpu = _cpu_backend_module()
+        if cpu is not None:
+            return cpu.rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height,
+                                 mode=mode, options=opts)
+        if backend == "cpu":
+            raise BackendUnavailableError(
+                "rasterize: the 'cpu' backend is not built on this machine (mipslam/render/cpu compiles it on "
+                "first use and needs a C++ compiler); use backend='torch' or 'auto'")
+    elif backend == "cpu":
+        raise BackendUnavailableError(f"rasterize: the 'cpu' backend needs CPU tensors, got {means.device}")
+    return rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width, height, mode, opts)
+
+
+def rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, mode: str,
+                    opts: RenderOptions) -> RenderOutput:
+    """The pure-PyTorch backend (inputs already checked by :func:`rasterize`)."""
+    if opts.pose_only:
+        means, quats, scales, opacities, colors = (t.detach() for t in (means, quats, scales, opacities, colors))
+    box_mode = mode in ("eaa", "exact")
+    proj = project_gaussians(
+        means, quats, scales, opacities, colors, viewmat, K, width, height, near_plane=opts.near_plane,
+        extent_sigma=opts.k_sigma, extent_pad=0.5 if box_mode else 0.0, filter_3d_scale=opts.filter_3d_scale,
+        max_sampling_rate=opts.max_sampling_rate)
+    settings = FootprintSettings(mode=mode, k_sigma=opts.k_sigma, max_nodes=int(opts.eaa_max_nodes),
+                                 gamma=opts.eaa_gamma, eta=opts.eaa_eta, tau=opts.eaa_tau,
+                                 point_area=opts.eaa_point_area, exact_order=opts.exact_order)
+    image = rasterize_projected(proj, width, height, settings, tile_size=opts.tile_size,
+                                pair_budget=opts.pair_budget, checkpoint=opts.checkpoint)
+    depth_normalized = None
+    if opts.normalized_depth:
+        has_alpha = image.alpha > 1e-6
+        depth_normalized = torch.where(has_alpha, image.depth / image.alpha.clamp_min(1e-6),
+                                       torch.zeros_like(image.depth))
+    with torch.no_grad():
+        dilation = MODE_DILATION.get(mode, 0.0)
+        ext = opts.k_sigma * torch.sqrt(torch.maximum(proj.cov2d[:, 0], proj.cov2d[:, 2]) + dilation)
+        radii = torch.where(proj.visible, ext + (0.5 if box_mode else 0.0), torch.zeros_like(ext))
+    return RenderOutput(color=image.color, depth=image.depth, alpha=image.alpha, depth_normalized=depth_normalized,
+                        means2d=proj.means2d, radii=radii, visible=proj.visible,
+                        n_visible=int(proj.visible.sum()), depths=proj.depths, mode=mode, backend="torch")
+
+
+def render(gaussians, camera: Camera, *, mode: str = "eaa", backend: str = "auto", **options) -> RenderOutput:
+    """Render a map object (anything with ``means``, ``quats``, ``scales``, ``opacities`` and ``colors``
+    tensors in the units of :func:`rasterize`) from a :class:`Camera`."""
+    return rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.colors,
+                     camera.viewmat, camera.K, camera.width, camera.height, mode=mode, backend=backend, **options)
