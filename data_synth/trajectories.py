@@ -1,0 +1,164 @@
+"""Named camera trajectories inside the procedural room (camera-to-world, OpenCV camera axes).
+
+All trajectories keep handheld speeds whatever the number of frames: about 2 cm and at most
+about 2 degrees per frame (checked by the tests for few and many frames). Where a trajectory
+cannot complete its full motion at that speed in the frames given, its extent shrinks instead
+(a smaller circle, a narrower look-around, a shorter dolly). They stay in the camera corridor
+that :func:`data_synth.scene.make_scene` keeps free of objects (within 1 m of the room's vertical
+axis, and the strip in front of the +x wall), so the camera is never closer than 0.4 m to a
+surface.
+
+- ``loop``: laps of a horizontal circle of radius ``r = min(1 m, 2 cm * frames_per_lap / 2 pi)``
+  about the room's axis at 1.4 m height, with small height, pitch and roll oscillations. With
+  at least 240 frames per lap the camera looks outwards and turns a full 360 degrees per lap (a
+  lap around the room); with fewer it looks towards the +x wall and sweeps its heading by
+  ``+-A``, ``A = 1.5 deg * frames_per_lap / (2 pi)``. The phase of frame i is
+  ``(laps * i mod (frames - 1)) / (frames - 1)``, computed in integers, so the last frame (and the
+  end of every lap) has exactly the start pose: the trajectory closes its loop(s).
+- ``zoom``: a dolly straight towards the test chart on the +x wall and back: distance
+  ``d = d_near * (d_far / d_near) ** ((1 + cos 2 pi s) / 2)``, d_near = 0.4 m, d_far up to 3 m
+  (as large as 3 cm per frame allows), so the texture's on-screen frequency changes by d_far / d_near.
+- ``line``: constant-velocity translation of 2 cm per frame (at most 2 m) parallel to the +x wall,
+  facing it from 1.6 m, fixed orientation.
+- ``static``: the camera at rest (the middle of ``line``), every frame identical.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from data_synth.scene import ROOM_MAX, ROOM_MIN
+from mipslam.errors import ConfigError
+
+TRAJECTORIES = ("loop", "zoom", "line", "static")
+
+STEP_M = 0.02  # nominal translation per frame
+MAX_STEP_M = 0.03  # never exceeded
+LOOP_RADIUS_M = 1.0
+LOOP_HEIGHT_M = 1.4
+FULL_TURN_MIN_FRAMES = 240  # frames per lap needed to turn 360 degrees at <= 1.5 deg/frame
+ZOOM_NEAR_M = 0.4
+ZOOM_FAR_MAX_M = 3.0
+ZOOM_HEIGHT_M = 1.3  # centre of the test chart on the +x wall
+WALL_VIEW_DISTANCE_M = 1.6  # line and static
+LINE_MAX_LENGTH_M = 2.0
+
+
+def camera_poses(position: np.ndarray, yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """Camera-to-world poses from a position and heading angles (radians, world z up).
+
+    position [N, 3] metres; yaw [N] (0 looks along +x, positive turns towards +y), pitch [N]
+    (positive looks up), roll [N] (about the viewing direction) -> T_wc [N, 4, 4] float64 with
+    OpenCV camera axes (columns of R: x right, y down, z forward).
+    """
+    yaw, pitch, roll = (np.asarray(a, dtype=np.float64) for a in (yaw, pitch, roll))
+    forward = np.stack([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)], -1)
+    right = np.stack([np.sin(yaw), -np.cos(yaw), np.zeros_like(yaw)], -1)  # forward x up, normalised
+    down = np.cross(forward, right)
+    c, s = np.cos(roll)[:, None], np.sin(roll)[:, None]
+    right_r = c * right + s * down
+    down_r = -s * right + c * down
+    T = np.zeros((len(yaw), 4, 4))
+    T[:, :3, 0], T[:, :3, 1], T[:, :3, 2] = right_r, down_r, forward
+    T[:, :3, 3] = position
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def _loop(frames: int, laps: int) -> np.ndarray:
+    if frames == 1:
+        phase = np.zeros(1)
+    else:
+        i = np.arange(frames, dtype=np.int64)
+        phase = ((laps * i) % (frames - 1)).astype(np.float64) / (frames - 1)
+    theta = 2 * math.pi * phase
+    per_lap = (frames - 1) / laps if frames > 1 else 1.0
+    radius = min(LOOP_RADIUS_M, STEP_M * per_lap / (2 * math.pi))
+    centre = 0.5 * (np.asarray(ROOM_MIN[:2]) + np.asarray(ROOM_MAX[:2]))
+    # Oscillation amplitudes bounded so each adds at most a fraction of a degree (mm) per frame.
+    pitch_amp = min(math.radians(4.0), math.radians(0.25) * per_lap / (2 * math.pi * 2))
+    roll_amp = min(math.radians(2.0), math.radians(0.15) * per_lap / (2 * math.pi * 3))
+    height_amp = min(0.08, 0.003 * per_lap / (2 * math.pi * 2))
+    if per_lap >= FULL_TURN_MIN_FRAMES:
+        yaw = theta.copy()
+    else:
+        yaw = math.radians(1.5) * per_lap / (2 * math.pi) * np.sin(theta)
+    position = np.stack([centre[0] + radius * np.cos(theta), centre[1] + radius * np.sin(theta),
+                         LOOP_HEIGHT_M + height_amp * np.sin(2 * theta)], -1)
+    pitch = math.radians(-8.0) + pitch_amp * np.sin(2 * theta)
+    roll = roll_amp * np.sin(3 * theta)
+    return camera_poses(position, yaw, pitch, roll)
+
+
+def _zoom_distances(frames: int, far: float) -> np.ndarray:
+    s = np.arange(frames, dtype=np.float64) / max(frames - 1, 1)
+    blend = 0.5 * (1 + np.cos(2 * math.pi * s))
+    return ZOOM_NEAR_M * (far / ZOOM_NEAR_M) ** blend
+
+
+def zoom_far_distance(frames: int) -> float:
+    """Largest start distance (<= 3 m) whose dolly keeps every step within 3 cm."""
+    if frames < 3:  # no frame in the middle of the dolly: every frame is at the start distance
+        return ZOOM_FAR_MAX_M
+
+    def max_step(far: float) -> float:
+        return float(np.abs(np.diff(_zoom_distances(frames, far))).max())
+    if max_step(ZOOM_FAR_MAX_M) <= MAX_STEP_M:
+        return ZOOM_FAR_MAX_M
+    lo, hi = ZOOM_NEAR_M, ZOOM_FAR_MAX_M
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if max_step(mid) <= MAX_STEP_M else (lo, mid)
+    return lo
+
+
+def _zoom(frames: int) -> np.ndarray:
+    distance = _zoom_distances(frames, zoom_far_distance(frames))
+    y_mid = 0.5 * (ROOM_MIN[1] + ROOM_MAX[1])
+    position = np.stack([ROOM_MAX[0] - distance, np.full(frames, y_mid), np.full(frames, ZOOM_HEIGHT_M)], -1)
+    zeros = np.zeros(frames)
+    return camera_poses(position, zeros, zeros, zeros)
+
+
+def _line(frames: int) -> np.ndarray:
+    length = min(LINE_MAX_LENGTH_M, STEP_M * (frames - 1))
+    s = np.arange(frames, dtype=np.float64) / max(frames - 1, 1)
+    y_mid = 0.5 * (ROOM_MIN[1] + ROOM_MAX[1])
+    y = y_mid + length / 2 - length * s  # moving to the camera's right (-y when facing +x)
+    position = np.stack([np.full(frames, ROOM_MAX[0] - WALL_VIEW_DISTANCE_M), y, np.full(frames, 1.35)], -1)
+    zeros = np.zeros(frames)
+    return camera_poses(position, zeros, np.full(frames, math.radians(-5.0)), zeros)
+
+
+def _static(frames: int) -> np.ndarray:
+    return np.repeat(_line(1), frames, axis=0)
+
+
+def trajectory_poses(name: str, frames: int, *, laps: int = 1) -> np.ndarray:
+    """Camera-to-world poses of trajectory ``name`` (one of :data:`TRAJECTORIES`).
+
+    frames: number of poses (>= 1). laps: laps around the room (``loop`` only; the last frame and
+    the end of every lap return exactly to the start pose).
+    Returns T_wc [frames, 4, 4] float64, OpenCV camera axes, world z up, metres.
+    """
+    if name not in TRAJECTORIES:
+        import difflib
+
+        near = difflib.get_close_matches(str(name), TRAJECTORIES, n=1)
+        hint = f" (did you mean '{near[0]}'?)" if near else ""
+        raise ConfigError(f"unknown trajectory '{name}'{hint}; choose one of: {', '.join(TRAJECTORIES)}")
+    if not isinstance(frames, (int, np.integer)) or isinstance(frames, bool) or frames < 1:
+        raise ConfigError(f"frames must be an integer >= 1, got {frames!r}")
+    if not isinstance(laps, (int, np.integer)) or isinstance(laps, bool) or laps < 1:
+        raise ConfigError(f"laps must be an integer >= 1, got {laps!r}")
+    if laps != 1 and name != "loop":
+        raise ConfigError(f"laps={laps} applies only to the 'loop' trajectory, not '{name}'")
+    frames = int(frames)
+    if name == "loop":
+        return _loop(frames, int(laps))
+    if name == "zoom":
+        return _zoom(frames)
+    if name == "line":
+        return _line(frames)
+    return _static(frames)

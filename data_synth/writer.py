@@ -1,0 +1,252 @@
+"""Write a procedural sequence as a Replica (NICE-SLAM) or TUM RGB-D folder plus ``synth.json``.
+
+Contract with ``mipslam.datasets`` (the reader):
+
+- Replica: ``results/frame%06d.png`` (8-bit RGB, lossless), ``results/depth%06d.png`` (uint16,
+  metres * 6553.5), ``traj.txt`` (16 numbers a line, row-major camera-to-world),
+  ``cam_params.json`` = ``{"camera": {"w", "h", "fx", "fy", "cx", "cy", "scale"}}``.
+- TUM: ``rgb.txt``, ``depth.txt`` (``timestamp filename`` after ``#`` comments),
+  ``groundtruth.txt`` (``timestamp tx ty tz qx qy qz qw``, camera-to-world),
+  ``rgb/<timestamp>.png``, ``depth/<timestamp>.png`` (uint16, metres * 5000); timestamps
+  ``1000.0 + i / 30`` with 6 decimals, the same for rgb, depth and ground truth.
+- ``synth.json``: format_version, generator, layout, trajectory, seed, frames, intrinsics,
+  depth_scale, fps, scene (everything :func:`data_synth.load_scene` needs), sensor; plus
+  ``trajectory_options`` ({"laps"}) and ``render`` ({"supersample", "fov_deg"}).
+- Depth is camera-frame z in metres, 0 = no measurement; poses camera-to-world, OpenCV axes.
+
+``synth.json`` is written last: a folder without it is an interrupted generation.
+"""
+from __future__ import annotations
+
+import difflib
+import json
+import logging
+import math
+import shutil
+from pathlib import Path
+from typing import Any, Sequence
+
+import cv2
+import numpy as np
+import torch
+
+from data_synth.render import MAX_SUPERSAMPLE, render_view
+from data_synth.scene import Scene, make_scene
+from data_synth.sensor import SensorOptions, apply_depth_effects, apply_exposure, exposure_parameters
+from data_synth.trajectories import TRAJECTORIES, trajectory_poses
+from mipslam.errors import ConfigError, DatasetError
+from mipslam.geometry import quat_wxyz_to_xyzw, rotmat_to_quat_wxyz
+from mipslam.types import Intrinsics
+
+logger = logging.getLogger(__name__)
+
+FORMAT_VERSION = 1
+GENERATOR = "data_synth"
+LAYOUTS = ("replica", "tum")
+DEPTH_SCALE = {"replica": 6553.5, "tum": 5000.0}
+FPS = 30.0
+TUM_TIME_ORIGIN = 1000.0
+DEFAULT_FOV_DEG = 70.0
+_WRITTEN_FILES = ("traj.txt", "cam_params.json", "rgb.txt", "depth.txt", "groundtruth.txt", "synth.json")
+_WRITTEN_DIRS = ("results", "rgb", "depth")
+
+
+def default_intrinsics(width: int, height: int, fov_deg: float = DEFAULT_FOV_DEG) -> Intrinsics:
+    """Square pixels, horizontal field of view ``fov_deg``, principal point at the image centre
+    (``(W - 1) / 2``, ``(H - 1) / 2`` with pixel centres at integers)."""
+    focal = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
+    return Intrinsics(fx=focal, fy=focal, cx=(width - 1) / 2, cy=(height - 1) / 2, width=int(width), height=int(height))
+
+
+def tum_timestamp(index: int) -> str:
+    """Timestamp of frame ``index`` as written: ``1000.0 + i / 30`` with 6 decimals."""
+    return f"{TUM_TIME_ORIGIN + index / FPS:.6f}"
+
+
+def _require_int(name: str, value: Any, low: int, high: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= value <= high:
+        raise ConfigError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
+    return int(value)
+
+
+def _require_float(name: str, value: Any, low: float, high: float, *, high_open: bool = False) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{name} must be a number, got {value!r}") from None
+    upper_ok = number < high if high_open else number <= high
+    if not (math.isfinite(number) and number >= low and upper_ok):
+        bracket = ")" if high_open else "]"
+        raise ConfigError(f"{name} must be in [{low}, {high}{bracket}, got {value!r}")
+    return number
+
+
+def _choice(name: str, value: Any, choices: Sequence[str]) -> str:
+    if value not in choices:
+        near = difflib.get_close_matches(str(value), choices, n=1)
+        hint = f" (did you mean '{near[0]}'?)" if near else ""
+        raise ConfigError(f"unknown {name} '{value}'{hint}; choose one of: {', '.join(choices)}")
+    return str(value)
+
+
+def _prepare_folder(out: Path, overwrite: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"output path {out} exists and is not a folder; choose another --out")
+    if out.is_dir() and any(out.iterdir()):
+        if not (overwrite and ((out / "synth.json").is_file() or _looks_generated(out))):
+            raise ConfigError(f"output folder {out} is not empty; choose a new --out or delete the folder"
+                              + ("" if overwrite else " (overwrite=True replaces an earlier data_synth folder)"))
+        for name in _WRITTEN_DIRS:
+            if (out / name).is_dir():
+                shutil.rmtree(out / name)
+        for name in _WRITTEN_FILES:
+            (out / name).unlink(missing_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise DatasetError(out, f"cannot create the output folder: {error}") from error
+
+
+def _looks_generated(out: Path) -> bool:
+    """An interrupted data_synth folder: only the files and folders this writer makes."""
+    return all(p.name in _WRITTEN_FILES or p.name in _WRITTEN_DIRS for p in out.iterdir())
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    try:
+        ok = cv2.imwrite(str(path), image)
+    except cv2.error as error:
+        raise DatasetError(path, f"cannot write the image: {error}") from error
+    if not ok:
+        raise DatasetError(path, "cannot write the image (is the folder writable and the disk not full?)")
+
+
+def _write_text(path: Path, text: str) -> None:
+    try:
+        path.write_text(text, encoding="utf-8")
+    except OSError as error:
+        raise DatasetError(path, f"cannot write: {error}") from error
+
+
+def color_to_uint8_bgr(color: np.ndarray) -> np.ndarray:
+    """color [H, W, 3] float in [0, 1], RGB -> [H, W, 3] uint8 BGR (OpenCV's order), rounded."""
+    return np.round(np.clip(color, 0.0, 1.0) * 255.0).astype(np.uint8)[..., ::-1]
+
+
+def depth_to_uint16(depth: np.ndarray, scale: float) -> np.ndarray:
+    """depth [H, W] metres -> [H, W] uint16 ``round(z * scale)``; 0 (no measurement) where z <= 0
+    or beyond the uint16 range."""
+    q = np.round(depth.astype(np.float64) * scale)
+    q[(depth <= 0) | (q > 65535)] = 0
+    return q.astype(np.uint16)
+
+
+def _quaternions_xyzw(poses: np.ndarray) -> np.ndarray:
+    """Rotation blocks as unit quaternions in TUM order.  poses [N, 4, 4] -> [N, 4] (qx qy qz qw), qw >= 0"""
+    q_wxyz = rotmat_to_quat_wxyz(torch.from_numpy(np.ascontiguousarray(poses[:, :3, :3])))
+    return quat_wxyz_to_xyzw(q_wxyz).numpy()
+
+
+def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = "loop", width: int = 320,
+             height: int = 240, frames: int = 100, seed: int = 0, supersample: int = 4, depth_noise: float = 0.0,
+             depth_holes: float = 0.0, exposure_jitter: float = 0.0, laps: int = 1,
+             fov_deg: float = DEFAULT_FOV_DEG, overwrite: bool = False) -> Path:
+    """Render a procedural RGB-D sequence with exact ground truth into ``out_dir``.
+
+    layout: "replica" | "tum" (the CLI's ``--format``); trajectory: one of :data:`TRAJECTORIES`;
+    width, height: pixels; frames: number of frames; seed: scene, textures and sensor noise;
+    supersample: S, colour is the S x S stratified footprint average; depth_noise (m at 1 m,
+    grows with z^2), depth_holes (dropout probability, also holes at depth edges),
+    exposure_jitter (log-gain std per frame): sensor realism, 0 = off; laps: laps of ``loop``;
+    fov_deg: horizontal field of view; overwrite: replace an earlier data_synth folder.
+    Same arguments give byte-identical folders. Returns the folder's path.
+    Raises ConfigError for invalid arguments, DatasetError when a file cannot be written.
+    """
+    layout = _choice("layout (--format)", layout, LAYOUTS)
+    trajectory = _choice("trajectory", trajectory, TRAJECTORIES)
+    width = _require_int("width", width, 8, 8192)
+    height = _require_int("height", height, 8, 8192)
+    frames = _require_int("frames", frames, 1, 1_000_000)
+    seed = _require_int("seed", seed, 0, 2**63 - 1)
+    supersample = _require_int("supersample", supersample, 1, MAX_SUPERSAMPLE)
+    laps = _require_int("laps", laps, 1, 1000)
+    sensor = SensorOptions(
+        depth_noise=_require_float("depth_noise", depth_noise, 0.0, 0.1),
+        depth_holes=_require_float("depth_holes", depth_holes, 0.0, 1.0, high_open=True),
+        exposure_jitter=_require_float("exposure_jitter", exposure_jitter, 0.0, 0.5),
+    )
+    fov_deg = _require_float("fov_deg", fov_deg, 10.0, 150.0)
+    poses = trajectory_poses(trajectory, frames, laps=laps)  # validates laps against the trajectory
+    out = Path(out_dir)
+    _prepare_folder(out, overwrite)
+
+    # The scene goes through its JSON form, so a reader rebuilding it from synth.json renders
+    # exactly what was written.
+    scene_dict = json.loads(json.dumps(make_scene(seed).to_dict()))
+    scene = Scene.from_dict(scene_dict)
+    intrinsics = default_intrinsics(width, height, fov_deg)
+    depth_scale = DEPTH_SCALE[layout]
+    exposure = exposure_parameters(seed, frames, sensor.exposure_jitter)
+    logger.info("data_synth: %d %s frames of %dx%d (seed %d, %dx%d supersampling) into %s",
+                frames, trajectory, width, height, seed, supersample, supersample, out)
+
+    color_dir = out / ("results" if layout == "replica" else "rgb")
+    depth_dir = out / ("results" if layout == "replica" else "depth")
+    color_dir.mkdir(exist_ok=True)
+    depth_dir.mkdir(exist_ok=True)
+    color_names, depth_names = [], []
+    for i, T_wc in enumerate(poses):
+        color, depth = render_view(scene, T_wc, intrinsics, supersample=supersample)
+        if sensor.exposure_jitter > 0:
+            color = apply_exposure(color, *exposure[i])
+        depth = apply_depth_effects(depth, sensor, seed, i)
+        if layout == "replica":
+            color_name, depth_name = f"results/frame{i:06d}.png", f"results/depth{i:06d}.png"
+        else:
+            stamp = tum_timestamp(i)
+            color_name, depth_name = f"rgb/{stamp}.png", f"depth/{stamp}.png"
+        _write_png(out / color_name, color_to_uint8_bgr(color))
+        _write_png(out / depth_name, depth_to_uint16(depth, depth_scale))
+        color_names.append(color_name)
+        depth_names.append(depth_name)
+        if (i + 1) % max(1, frames // 10) == 0 or i + 1 == frames:
+            logger.info("data_synth: rendered %d/%d frames", i + 1, frames)
+
+    if layout == "replica":
+        lines = [" ".join(f"{v:.18e}" for v in T.reshape(-1)) for T in poses]
+        _write_text(out / "traj.txt", "\n".join(lines) + "\n")
+        camera = {"w": width, "h": height, "fx": intrinsics.fx, "fy": intrinsics.fy, "cx": intrinsics.cx,
+                  "cy": intrinsics.cy, "scale": depth_scale}
+        _write_text(out / "cam_params.json", json.dumps({"camera": camera}, indent=2) + "\n")
+    else:
+        stamps = [tum_timestamp(i) for i in range(frames)]
+        header = "# data_synth: {kind} (seed {seed}, trajectory {traj})\n# timestamp filename\n"
+        _write_text(out / "rgb.txt", header.format(kind="color images", seed=seed, traj=trajectory)
+                    + "".join(f"{s} {n}\n" for s, n in zip(stamps, color_names)))
+        _write_text(out / "depth.txt", header.format(kind="depth images", seed=seed, traj=trajectory)
+                    + "".join(f"{s} {n}\n" for s, n in zip(stamps, depth_names)))
+        quats = _quaternions_xyzw(poses)
+        rows = [f"{s} " + " ".join(f"{v:.9f}" for v in (*T[:3, 3], *q)) for s, T, q in zip(stamps, poses, quats)]
+        _write_text(out / "groundtruth.txt", f"# data_synth ground truth (camera-to-world, seed {seed})\n"
+                    "# timestamp tx ty tz qx qy qz qw\n" + "\n".join(rows) + "\n")
+
+    info = {
+        "format_version": FORMAT_VERSION,
+        "generator": GENERATOR,
+        "layout": layout,
+        "trajectory": trajectory,
+        "seed": seed,
+        "frames": frames,
+        "intrinsics": {"fx": intrinsics.fx, "fy": intrinsics.fy, "cx": intrinsics.cx, "cy": intrinsics.cy,
+                       "width": width, "height": height},
+        "depth_scale": depth_scale,
+        "fps": FPS,
+        "scene": scene_dict,
+        "sensor": sensor.to_dict(exposure if sensor.exposure_jitter > 0 else None),
+        "trajectory_options": {"laps": laps},
+        "render": {"supersample": supersample, "fov_deg": fov_deg,
+                   "color": "mean of S x S stratified rays over each pixel's unit square, 8-bit rounded",
+                   "depth": "camera-frame z of the pixel-centre ray's hit"},
+    }
+    _write_text(out / "synth.json", json.dumps(info, indent=1) + "\n")
+    return out
