@@ -6,7 +6,7 @@ cannot complete its full motion at that speed in the frames given, its extent sh
 (a smaller circle, a narrower look-around, a shorter dolly). They stay in the camera corridor
 that :func:`data_synth.scene.make_scene` keeps free of objects (within 1 m of the room's vertical
 axis, and the strip in front of the +x wall), so the camera is never closer than 0.4 m to a
-surface.
+surface (the zoom's nearest point; elsewhere 0.5 m or more).
 
 - ``loop``: laps of a horizontal circle of radius ``r = min(1 m, 2 cm * frames_per_lap / 2 pi)``
   about the room's axis at 1.4 m height, with small height, pitch and roll oscillations. With

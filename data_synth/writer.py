@@ -209,7 +209,7 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
         _write_png(out / depth_name, depth_to_uint16(depth, depth_scale))
         color_names.append(color_name)
         depth_names.append(depth_name)
-        if (i + 1) % max(1, frames // 10) == 0 or i + 1 == frames:
+        if (i + 1) % max(1, math.ceil(frames / 10)) == 0 or i + 1 == frames:
             logger.info("data_synth: rendered %d/%d frames", i + 1, frames)
 
     if layout == "replica":
