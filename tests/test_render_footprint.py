@@ -35,10 +35,10 @@ def neighbourhood(radius, dtype):
 
 def battery(dtype=torch.float32):
     """Single Gaussians: sub-pixel to large, anisotropy 1..100, rotated, centred / on an edge / on a corner."""
-    sizes = [0.05, 0.15, 0.3, 0.5, 0.8, 1.2, 2.0, 4.0, 8.0]
+    sizes = [0.05, 0.15, 0.3, 0.6, 1.0, 2.0, 4.0, 8.0]
     kappas = [1.0, 2.0, 5.0, 20.0, 100.0]
     thetas = [0.0, 0.3, math.pi / 4, 1.1]
-    offsets = [(0.0, 0.0), (0.5, 0.0), (0.5, 0.5), (0.23, -0.41), (0.0, 0.5)]
+    offsets = [(0.0, 0.0), (0.5, 0.0), (0.5, 0.5), (0.23, -0.41)]
     rows = [(s, k, t, ox, oy) for s in sizes for k in kappas for t in thetas for ox, oy in offsets]
     data = torch.tensor(rows, dtype=dtype)
     xx, xy, yy, det = rotated_covariance(data[:, 0], data[:, 1], data[:, 2])
@@ -48,7 +48,7 @@ def battery(dtype=torch.float32):
 
 def mean_abs_error_against_exact(mode, dtype=torch.float32, **eaa):
     mx, my, xx, xy, yy, det, o = battery(dtype)
-    px, py = neighbourhood(3, dtype)
+    px, py = neighbourhood(2, dtype)
     exact = fp.exact_pixel_opacity(px.double(), py.double(), mx.double(), my.double(), xx.double(), xy.double(),
                                    yy.double(), det.double(), o.double())
     cxx, cxy, cyy, cdet, co = fp.footprint_parameters(mode, xx, xy, yy, det, o)

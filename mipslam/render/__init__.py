@@ -14,6 +14,7 @@ import importlib
 import importlib.util
 import logging
 from dataclasses import dataclass, fields
+from functools import lru_cache
 
 import torch
 
@@ -126,9 +127,14 @@ class Camera:
     height: int
 
 
+@lru_cache(maxsize=1)
+def _cpu_backend_installed() -> bool:
+    return importlib.util.find_spec("mipslam.render.cpu") is not None
+
+
 def _cpu_backend_module():
     """The compiled CPU backend module if present and built, else None."""
-    if importlib.util.find_spec("mipslam.render.cpu") is None:
+    if not _cpu_backend_installed():
         return None
     module = importlib.import_module("mipslam.render.cpu")
     is_available = getattr(module, "is_available", None)

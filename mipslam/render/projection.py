@@ -14,6 +14,7 @@ splats far outside the image do not explode. The covariance gets a floor of ``CO
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -52,7 +53,7 @@ def finite_rows(*tensors: torch.Tensor) -> torch.Tensor:
     """True for rows finite in every tensor.  each [N, ...] -> [N] bool"""
     ok = None
     for t in tensors:
-        row = torch.isfinite(t.reshape(t.shape[0], -1)).all(-1)
+        row = torch.isfinite(t.reshape(t.shape[0], int(math.prod(t.shape[1:])))).all(-1)
         ok = row if ok is None else ok & row
     return ok
 

@@ -67,8 +67,10 @@ def bin_gaussians(means2d: torch.Tensor, ext_x: torch.Tensor, ext_y: torch.Tenso
         span_x = x1 - x0 + 1
         counts = span_x * (y1 - y0 + 1)  # [M]
         total = int(counts.sum())
-        gaussian = torch.repeat_interleave(torch.arange(means2d.shape[0], device=device), counts)  # [P]
-        first = torch.cumsum(counts, 0) - counts
+        ends = torch.cumsum(counts, 0)
+        # Owner of each pair (a repeat_interleave; searchsorted avoids its fixed cost on small inputs).
+        gaussian = torch.searchsorted(ends, torch.arange(total, device=device), right=True)  # [P]
+        first = ends - counts
         local = torch.arange(total, device=device) - first[gaussian]
         tile = (y0[gaussian] + local // span_x[gaussian]) * tiles_x + x0[gaussian] + local % span_x[gaussian]
         tile, order = torch.sort(tile, stable=True)
