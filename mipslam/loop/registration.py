@@ -129,6 +129,21 @@ def rgbd_point_cloud(
     return cloud
 
 
+def information_from_open3d(info_o3d: torch.Tensor, T_ij: torch.Tensor) -> torch.Tensor:
+    """Open3D's registration information -> information of the pose-graph residual e_ij.
+
+    info_o3d: ``get_information_matrix_from_point_clouds`` output, order (rotation, translation),
+    for a left perturbation of T_ij in camera i (target)                              # [6, 6]
+    T_ij: the registered relative pose (camera j -> camera i)                          # [4, 4]
+    -> ``Ad(T_ij)^T P info P^T Ad(T_ij)`` in the order [rho, phi] for e_ij (camera j)   # [6, 6] float64
+    """
+    perm = torch.as_tensor(_O3D_TO_RHO_PHI)
+    info_delta = info_o3d.to(torch.float64)[perm][:, perm]
+    Ad = adjoint(T_ij.to(torch.float64))
+    information = Ad.T @ info_delta @ Ad
+    return 0.5 * (information + information.T)
+
+
 def _rejected(T_ij, fitness, rmse, n, corr_m, corr_deg, reason, start) -> RegistrationResult:
     return RegistrationResult(T_ij, torch.zeros(6, 6, dtype=torch.float64), fitness, rmse, n, corr_m, corr_deg,
                               False, reason, time.perf_counter() - start)
@@ -184,11 +199,8 @@ def register_point_clouds(source, target, T_ij_init: torch.Tensor, options: Regi
         return _rejected(T_ij, fitness, rmse, n, correction_m, correction_deg, "; ".join(reasons), start)
 
     info_o3d = np.asarray(reg.get_information_matrix_from_point_clouds(src_down, tgt_down, max_distance, current))
-    info_delta = info_o3d[np.ix_(_O3D_TO_RHO_PHI, _O3D_TO_RHO_PHI)]  # left perturbation in camera i, [rho, phi]
-    info_delta = info_delta / options.point_sigma_m**2 * min(1.0, options.max_independent_points / max(n, 1))
-    Ad = adjoint(T_ij).numpy()
-    information = torch.as_tensor(Ad.T @ info_delta @ Ad, dtype=torch.float64)
-    information = 0.5 * (information + information.T)
+    scale = min(1.0, options.max_independent_points / max(n, 1)) / options.point_sigma_m**2
+    information = information_from_open3d(torch.as_tensor(info_o3d), T_ij) * scale
     return RegistrationResult(T_ij, information, fitness, rmse, n, correction_m, correction_deg, True, "",
                               time.perf_counter() - start)
 
