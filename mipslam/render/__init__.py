@@ -36,6 +36,7 @@ class RenderOptions:
     """Renderer options (keyword arguments of :func:`rasterize`); defaults measured in docs/renderer.md.
 
     near_plane        metres; Gaussians with camera z <= near_plane are dropped
+    far_plane         metres; Gaussians with camera z >= far_plane are dropped (keeps float32 finite)
     k_sigma           k-sigma bound (tile binning, centre-sample cut, EAA clipping)
     eaa_max_nodes     EAA node cap n_max (1 = undilated point sampling everywhere)
     eaa_gamma         EAA anisotropy growth: n = n_size (1 + gamma ln kappa)
@@ -52,6 +53,7 @@ class RenderOptions:
     """
 
     near_plane: float = 0.01
+    far_plane: float = 1e10
     k_sigma: float = 3.0
     eaa_max_nodes: int = 8
     eaa_gamma: float = 1.0
@@ -70,6 +72,7 @@ class RenderOptions:
     def __post_init__(self):
         checks = [
             (self.near_plane > 0, "near_plane must be positive (metres)"),
+            (self.far_plane > self.near_plane, "far_plane must be larger than near_plane (metres)"),
             (self.k_sigma > 0, "k_sigma must be positive"),
             (int(self.eaa_max_nodes) == self.eaa_max_nodes and self.eaa_max_nodes >= 1,
              "eaa_max_nodes must be an integer >= 1 (1 = point value)"),
@@ -199,9 +202,14 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
     if backend in ("auto", "cpu") and means.device.type == "cpu":
         cpu = _cpu_backend_module()
         if cpu is not None:
-            return cpu.rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height,
-                                 mode=mode, options=opts)
-        if backend == "cpu":
+            unsupported = getattr(cpu, "unsupported_reason", lambda *args: None)(means, colors, mode, opts)
+            if unsupported is None:
+                return cpu.rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height,
+                                     mode=mode, options=opts)
+            if backend == "cpu":
+                raise BackendUnavailableError(f"rasterize: {unsupported}")
+            log.debug("rasterize: backend 'auto' uses torch for this call: %s", unsupported)
+        elif backend == "cpu":
             raise BackendUnavailableError(
                 "rasterize: the 'cpu' backend is not built on this machine (mipslam/render/cpu compiles it on "
                 "first use and needs a C++ compiler); use backend='torch' or 'auto'")
@@ -211,20 +219,27 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
 
 
 def rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, mode: str,
-                    opts: RenderOptions) -> RenderOutput:
-    """The pure-PyTorch backend (inputs already checked by :func:`rasterize`)."""
+                    opts: RenderOptions, *, rasterizer=rasterize_projected) -> RenderOutput:
+    """The pure-PyTorch backend (inputs already checked by :func:`rasterize`).
+
+    ``rasterizer`` is the per-pixel stage (:func:`mipslam.render.rasterize_torch.rasterize_projected`
+    signature: ``(proj, width, height, settings, *, tile_size, pair_budget, checkpoint)`` returning an
+    object with ``color``, ``depth`` and ``alpha``); the compiled CPU backend passes its own, so the
+    projection and the bookkeeping are shared code.
+    """
     if opts.pose_only:
         means, quats, scales, opacities, colors = (t.detach() for t in (means, quats, scales, opacities, colors))
     box_mode = mode in ("eaa", "exact")
     proj = project_gaussians(
         means, quats, scales, opacities, colors, viewmat, K, width, height, near_plane=opts.near_plane,
-        extent_sigma=opts.k_sigma, extent_pad=0.5 if box_mode else 0.0, filter_3d_scale=opts.filter_3d_scale,
+        far_plane=opts.far_plane, extent_sigma=opts.k_sigma, extent_pad=0.5 if box_mode else 0.0,
+        filter_3d_scale=opts.filter_3d_scale,
         max_sampling_rate=opts.max_sampling_rate)
     settings = FootprintSettings(mode=mode, k_sigma=opts.k_sigma, max_nodes=int(opts.eaa_max_nodes),
                                  gamma=opts.eaa_gamma, eta=opts.eaa_eta, tau=opts.eaa_tau,
                                  point_area=opts.eaa_point_area, exact_order=opts.exact_order)
-    image = rasterize_projected(proj, width, height, settings, tile_size=opts.tile_size,
-                                pair_budget=opts.pair_budget, checkpoint=opts.checkpoint)
+    image = rasterizer(proj, width, height, settings, tile_size=opts.tile_size, pair_budget=opts.pair_budget,
+                       checkpoint=opts.checkpoint)
     depth_normalized = None
     if opts.normalized_depth:
         has_alpha = image.alpha > 1e-6

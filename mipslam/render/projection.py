@@ -7,7 +7,8 @@ the pinhole projection at the Gaussian's camera-frame centre. The 2D covariance 
 2x2 minors of M, which is never negative and keeps full relative precision for thin splats.
 
 Robustness (issue 3 "numerical extremes"): Gaussians with a non-finite entry in any input, a zero
-quaternion, or a centre at or behind the near plane are dropped (``visible = False``, opacity 0) and
+quaternion, a centre at or behind the near plane or beyond the far plane, a direction far outside the
+view (|x/z| > 1e6) or a projected size above 1e9 px are dropped (``visible = False``, opacity 0) and
 their values replaced before any arithmetic, so neither images nor gradients see NaN or Inf. As in
 gsplat, the Jacobian is evaluated at the centre direction clamped to 1.3x the field of view, so
 splats far outside the image do not explode. The covariance gets a floor of ``COV_FLOOR`` px^2.
@@ -25,6 +26,10 @@ from mipslam.geometry.se3 import quat_wxyz_to_rotmat
 COV_FLOOR = 1e-8
 #: Fraction of the half field of view by which the Jacobian's direction may leave the image (gsplat: 0.3).
 FOV_MARGIN = 0.3
+#: Gaussians projected larger than this (sigma in px) are dropped: beyond it det Sigma2D overflows float32.
+MAX_SIGMA_PX = 1e9
+#: Gaussians whose direction |x/z| or |y/z| exceeds this are dropped (never on screen, would overflow).
+MAX_TANGENT = 1e6
 
 
 @dataclass(frozen=True)
@@ -80,7 +85,7 @@ def filter_3d_variance(depths: torch.Tensor, K: torch.Tensor, filter_scale: floa
 
 def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
                       colors: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, *,
-                      near_plane: float = 0.01, extent_sigma: float = 3.0, extent_pad: float = 0.0,
+                      near_plane: float = 0.01, far_plane: float = 1e10, extent_sigma: float = 3.0, extent_pad: float = 0.0,
                       filter_3d_scale: float | None = None,
                       max_sampling_rate: torch.Tensor | None = None) -> ProjectedGaussians:
     """Project Gaussians with the EWA linearisation.
@@ -104,27 +109,38 @@ def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
 
     W = viewmat[:3, :3]
     means_c = means @ W.T + viewmat[:3, 3]  # [N, 3]
-    z = means_c[:, 2]
-    in_front = z > near_plane
-    z_safe = torch.where(in_front, z, torch.full_like(z, near_plane)).clamp_min(near_plane)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    u = fx * means_c[:, 0] / z_safe + cx
-    v = fy * means_c[:, 1] / z_safe + cy
+    # Rows the arithmetic below can take without overflow: in front of the near plane, before the
+    # far plane, not absurdly off-axis, projected sigma below MAX_SIGMA_PX. The others are replaced by
+    # a harmless row *before* any division or product, so not even their zero gradients meet an Inf.
+    with torch.no_grad():
+        z_raw = means_c[:, 2]
+        z_pos = z_raw.clamp_min(near_plane)
+        sigma_px_bound = scales.abs().amax(-1) * torch.maximum(fx, fy).abs() / z_pos
+        in_range = (z_raw > near_plane) & (z_raw < far_plane) & torch.isfinite(means_c).all(-1) \
+            & (means_c[:, 0].abs() < MAX_TANGENT * z_pos) & (means_c[:, 1].abs() < MAX_TANGENT * z_pos) \
+            & (sigma_px_bound < MAX_SIGMA_PX)
+        keep = keep & in_range
+    means_c = torch.where(keep[:, None], means_c, torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=means.device))
+    scales = _replace_rows(scales, keep, 1.0)
+    z = means_c[:, 2]
+    u = fx * means_c[:, 0] / z + cx
+    v = fy * means_c[:, 1] / z + cy
     means2d = torch.stack([u, v], -1)
 
     # Jacobian of (fx x/z + cx, fy y/z + cy) at the centre direction clamped to the widened view.
     tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
     lim_x_pos, lim_x_neg = (width - cx) / fx + FOV_MARGIN * tan_x, cx / fx + FOV_MARGIN * tan_x
     lim_y_pos, lim_y_neg = (height - cy) / fy + FOV_MARGIN * tan_y, cy / fy + FOV_MARGIN * tan_y
-    tx = torch.minimum(torch.maximum(means_c[:, 0] / z_safe, -lim_x_neg), lim_x_pos)
-    ty = torch.minimum(torch.maximum(means_c[:, 1] / z_safe, -lim_y_neg), lim_y_pos)
-    zero = torch.zeros_like(z_safe)
-    J = torch.stack([torch.stack([fx / z_safe, zero, -fx * tx / z_safe], -1),
-                     torch.stack([zero, fy / z_safe, -fy * ty / z_safe], -1)], -2)  # [N, 2, 3]
+    tx = torch.minimum(torch.maximum(means_c[:, 0] / z, -lim_x_neg), lim_x_pos)
+    ty = torch.minimum(torch.maximum(means_c[:, 1] / z, -lim_y_neg), lim_y_pos)
+    zero = torch.zeros_like(z)
+    J = torch.stack([torch.stack([fx / z, zero, -fx * tx / z], -1),
+                     torch.stack([zero, fy / z, -fy * ty / z], -1)], -2)  # [N, 2, 3]
 
     std3d = scales  # [N, 3]; the sign of a scale does not matter (Sigma = M M^T)
     if filter_3d_scale:
-        var3d = filter_3d_variance(z_safe, K, filter_3d_scale, max_sampling_rate)  # [N]
+        var3d = filter_3d_variance(z, K, filter_3d_scale, max_sampling_rate)  # [N]
         scales_sq = scales * scales
         filtered_sq = scales_sq + var3d[:, None]
         opacities = opacities * torch.sqrt(torch.prod(scales_sq / filtered_sq, dim=-1))
@@ -132,20 +148,24 @@ def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     R = quat_wxyz_to_rotmat(quats)  # [N, 3, 3]
     M = (J @ W) @ (R * std3d[:, None, :])  # [N, 2, 3] = J W R S
     cov = M @ M.transpose(1, 2)  # [N, 2, 2]
-    minors = torch.stack([M[:, 0, 0] * M[:, 1, 1] - M[:, 0, 1] * M[:, 1, 0],
-                          M[:, 0, 0] * M[:, 1, 2] - M[:, 0, 2] * M[:, 1, 0],
-                          M[:, 0, 1] * M[:, 1, 2] - M[:, 0, 2] * M[:, 1, 1]], -1)
+    # det by Cauchy-Binet on M / c (c = the largest |entry|, no gradient), so no product overflows.
+    c = M.detach().abs().amax(dim=(1, 2)).clamp_min(torch.finfo(dtype).tiny)  # [N]
+    Mn = M / c[:, None, None]
+    minors = torch.stack([Mn[:, 0, 0] * Mn[:, 1, 1] - Mn[:, 0, 1] * Mn[:, 1, 0],
+                          Mn[:, 0, 0] * Mn[:, 1, 2] - Mn[:, 0, 2] * Mn[:, 1, 0],
+                          Mn[:, 0, 1] * Mn[:, 1, 2] - Mn[:, 0, 2] * Mn[:, 1, 1]], -1)
     cov_xx = cov[:, 0, 0] + COV_FLOOR
     cov_yy = cov[:, 1, 1] + COV_FLOOR
     cov_xy = cov[:, 0, 1]
-    cov_det = (minors * minors).sum(-1) + COV_FLOOR * (cov[:, 0, 0] + cov[:, 1, 1]) + COV_FLOOR * COV_FLOOR
+    cov_det = (c * c) * (c * c) * (minors * minors).sum(-1) + COV_FLOOR * (cov[:, 0, 0] + cov[:, 1, 1]) \
+        + COV_FLOOR * COV_FLOOR
 
     finite2d = torch.isfinite(means2d).all(-1) & torch.isfinite(cov_xx) & torch.isfinite(cov_yy) \
         & torch.isfinite(cov_xy) & torch.isfinite(cov_det)
     ext_x = extent_sigma * torch.sqrt(cov_xx) + extent_pad
     ext_y = extent_sigma * torch.sqrt(cov_yy) + extent_pad
     on_screen = (u + ext_x > -0.5) & (u - ext_x < width - 0.5) & (v + ext_y > -0.5) & (v - ext_y < height - 0.5)
-    visible = keep & in_front & finite2d & on_screen & (opacities > 0)
+    visible = keep & finite2d & on_screen & (opacities > 0)
 
     # Dropped rows get harmless finite values so later arithmetic (and its gradient) stays finite.
     means2d = _replace_rows(means2d, visible, -1e6)

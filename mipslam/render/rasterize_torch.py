@@ -191,6 +191,12 @@ def rasterize_projected(proj: ProjectedGaussians, width: int, height: int, setti
     canvas = torch.zeros(num_tiles, pixels_per_tile, channels + 2, dtype=dtype, device=device)
     if results:
         canvas = canvas.index_copy(0, torch.cat(done_tiles), torch.cat(results))
+    elif torch.is_grad_enabled():
+        # Nothing drawn: keep the (black) image attached to the inputs so a loss on it still has a
+        # graph and the inputs receive zero gradients instead of an autograd error.
+        anchor = proj.means2d.sum() + proj.cov2d.sum() + proj.cov_det.sum() + proj.opacities.sum() \
+            + proj.colors.sum() + proj.depths.sum()
+        canvas = canvas + 0.0 * anchor
     image = canvas.view(tiles_y, tiles_x, tile_size, tile_size, channels + 2).permute(0, 2, 1, 3, 4)
     image = image.reshape(tiles_y * tile_size, tiles_x * tile_size, channels + 2)[:height, :width]
     return TiledImage(color=image[..., :channels], depth=image[..., channels], alpha=image[..., channels + 1])
