@@ -210,9 +210,11 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
                 raise BackendUnavailableError(f"rasterize: {unsupported}")
             log.debug("rasterize: backend 'auto' uses torch for this call: %s", unsupported)
         elif backend == "cpu":
+            reason = (importlib.import_module("mipslam.render.cpu").unavailable_reason()
+                      if _cpu_backend_installed() else None) or "it is not built"
             raise BackendUnavailableError(
-                "rasterize: the 'cpu' backend is not built on this machine (mipslam/render/cpu compiles it on "
-                "first use and needs a C++ compiler); use backend='torch' or 'auto'")
+                f"rasterize: the 'cpu' backend is not available on this machine ({reason}); use backend='torch' "
+                "or 'auto'")
     elif backend == "cpu":
         raise BackendUnavailableError(f"rasterize: the 'cpu' backend needs CPU tensors, got {means.device}")
     return rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width, height, mode, opts)
