@@ -118,7 +118,7 @@ class TrackingConfig:
     coarse_to_fine: tuple[float, ...] = ()  # e.g. (0.5,) tracks at half resolution first
     use_exposure: bool = False
     opacity_threshold: float = 0.95  # pixels whose rendered opacity is below are ignored
-    gradient_mask_percentile: float = 0.0  # keep colour pixels above this image-gradient percentile
+    gradient_mask_percentile: float = 0.0  # keep colour pixels above this image-gradient percentile (0-100)
     min_valid_fraction: float = 0.05
     failure_loss_ratio: float = 5.0  # loss above ratio * running level = failure
 
@@ -162,7 +162,10 @@ class MappingConfig:
     freq_alpha: float = 1.0
     add_opacity_threshold: float = 0.5
     add_depth_error_ratio: float = 10.0  # depth error above ratio * median error adds Gaussians
+    densify_pixel_stride: int = 1  # one new Gaussian per stride x stride pixels
+    initial_opacity: float = 0.5
     prune_opacity: float = 0.005
+    prune_max_sigma_px: float = 50.0  # std-dev larger than this many pixels (seen from the keyframe) is absurd
     max_gaussians: int = 200_000
 
     def __post_init__(self):
@@ -170,6 +173,9 @@ class MappingConfig:
         _check(self.max_gaussians >= 1, "mapping.max_gaussians", "must be >= 1")
         _check(self.freq_patch >= 2, "mapping.freq_patch", "must be >= 2")
         _check(self.lambda_freq >= 0, "mapping.lambda_freq", "must be >= 0")
+        _check(self.densify_pixel_stride >= 1, "mapping.densify_pixel_stride", "must be >= 1")
+        _check(0 < self.initial_opacity < 1, "mapping.initial_opacity", "must be in (0, 1)")
+        _check(self.prune_max_sigma_px > 0, "mapping.prune_max_sigma_px", "must be positive")
 
 
 @dataclass(frozen=True)

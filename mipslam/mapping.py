@@ -1,0 +1,175 @@
+"""Mapping: grow, refine and prune the Gaussian map over a window of keyframes.
+
+On each keyframe (DESIGN.md "Losses" and "Model only what a scene requires"):
+
+1. densify: render the map at the new keyframe; new Gaussians go only where the map does not
+   explain it (rendered opacity below ``add_opacity_threshold`` or the map's surface far behind the
+   measurement), one per selected pixel (every ``densify_pixel_stride``-th), sized from depth and the
+   pixel footprint, within the ``max_gaussians`` cap;
+2. optimise the map (and the window's keyframe poses, except the first keyframe, which fixes the
+   gauge) for ``iterations`` Adam steps; step ``i`` uses the newest keyframe on even steps and a
+   keyframe drawn with the run's generator from the others on odd steps. Loss per view:
+   ``alpha_c |exposure(I) - I_gt| + (1 - alpha_c) |D - D_gt|`` (means over valid pixels)
+   ``+ isotropy_weight * isotropy(scales) + lambda_freq * L_freq(I, I_gt)``;
+3. prune Gaussians with negligible opacity, non-finite values or an absurd size, and enforce the cap.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from mipslam.config import MappingConfig, RenderConfig
+from mipslam.gaussians import (
+    GaussianMap,
+    GaussianOptimizer,
+    cap_count_mask,
+    cap_pixel_mask,
+    densify_pixel_mask,
+    distances_to_camera,
+    gaussians_from_rgbd,
+    prune_mask,
+)
+from mipslam.geometry.se3 import se3_exp, se3_inverse
+from mipslam.losses.frequency import frequency_loss
+from mipslam.losses.photometric import apply_affine_exposure, rgbd_l1_loss, rgbd_masks
+from mipslam.losses.regularizers import isotropy_loss
+from mipslam.rendering import render_view
+from mipslam.types import Intrinsics
+
+
+@dataclass(frozen=True)
+class MappingView:
+    """One keyframe as mapping sees it (tensors on the map's device, pose float64 on CPU).
+
+    color [H, W, 3], depth [H, W] metres, T_wc [4, 4], exposure [2] (log_gain, bias, fixed in mapping)
+    """
+
+    keyframe_id: int
+    color: torch.Tensor
+    depth: torch.Tensor
+    T_wc: torch.Tensor
+    exposure: torch.Tensor
+    intrinsics: Intrinsics
+    optimize_pose: bool
+
+
+@dataclass(frozen=True)
+class MappingResult:
+    """What one mapping call did.  refined_T_wc: (keyframe id, new T_wc [4, 4] float64) per optimised pose."""
+
+    added: int
+    pruned: int
+    iterations: int
+    initial_loss: float
+    final_loss: float
+    refined_T_wc: tuple[tuple[int, torch.Tensor], ...]
+
+
+class Mapper:
+    """Maps keyframes (reads only the mapping and render config sections)."""
+
+    def __init__(self, config: MappingConfig, render_config: RenderConfig):
+        self.config = config
+        self.render_config = render_config
+
+    # ------------------------------------------------------------------ densify / prune
+
+    @torch.no_grad()
+    def densify(self, gmap: GaussianMap, optimizer: GaussianOptimizer, view: MappingView, frame_index: int) -> int:
+        """Add Gaussians where the map does not explain ``view``; returns how many were added."""
+        cfg = self.config
+        budget = cfg.max_gaussians - len(gmap)
+        if budget <= 0:
+            return 0
+        T_cw = se3_inverse(view.T_wc).to(gmap.dtype)
+        if len(gmap) == 0:
+            mask = view.depth > 0
+        else:
+            out = render_view(gmap.activated(), T_cw, view.intrinsics, self.render_config, normalized_depth=True)
+            mask = densify_pixel_mask(out.alpha, out.depth_normalized, view.depth,
+                                      opacity_threshold=cfg.add_opacity_threshold,
+                                      depth_error_ratio=cfg.add_depth_error_ratio)
+        stride = cfg.densify_pixel_stride
+        grid = torch.zeros_like(mask)
+        grid[::stride, ::stride] = True
+        mask = cap_pixel_mask(mask & grid, budget)
+        new = gaussians_from_rgbd(view.color, view.depth, view.intrinsics.matrix(gmap.dtype, gmap.device),
+                                  view.T_wc.to(gmap.dtype), mask, initial_opacity=cfg.initial_opacity,
+                                  anchor_keyframe=view.keyframe_id, created_frame=frame_index, pixel_stride=stride)
+        gmap.add(new, optimizer)
+        return len(new)
+
+    @torch.no_grad()
+    def prune(self, gmap: GaussianMap, optimizer: GaussianOptimizer, view: MappingView) -> int:
+        """Remove negligible, non-finite or absurdly large Gaussians and enforce the count cap."""
+        if len(gmap) == 0:
+            return 0
+        g = gmap.activated()
+        remove = prune_mask(g.opacities, g.scales, distances_to_camera(g.means, view.T_wc.to(g.means)),
+                            focal_px=max(view.intrinsics.fx, view.intrinsics.fy), min_opacity=self.config.prune_opacity,
+                            max_sigma_px=self.config.prune_max_sigma_px, means=g.means)
+        removed = gmap.remove(remove, optimizer)
+        removed += gmap.remove(cap_count_mask(torch.sigmoid(gmap.opacity_logits), self.config.max_gaussians), optimizer)
+        return removed
+
+    # ------------------------------------------------------------------ optimisation
+
+    def view_loss(self, gmap: GaussianMap, view: MappingView, T_cw: torch.Tensor) -> torch.Tensor:
+        """The mapping loss of one view (module docstring), differentiable w.r.t. the map and ``T_cw``."""
+        cfg = self.config
+        g = gmap.activated()
+        out = render_view(g, T_cw, view.intrinsics, self.render_config)
+        color = apply_affine_exposure(out.color, view.exposure[0], view.exposure[1])
+        masks = rgbd_masks(view.color, view.depth)
+        loss = rgbd_l1_loss(color, out.depth, view.color, view.depth, alpha_color=cfg.alpha_color, masks=masks).total
+        if cfg.isotropy_weight > 0:
+            loss = loss + cfg.isotropy_weight * isotropy_loss(g.scales)
+        if cfg.lambda_freq > 0:
+            loss = loss + cfg.lambda_freq * frequency_loss(color, view.color, patch_size=cfg.freq_patch,
+                                                           alpha=cfg.freq_alpha, mask=masks.color)
+        return loss
+
+    def optimize(self, gmap: GaussianMap, optimizer: GaussianOptimizer, views: list[MappingView], iterations: int,
+                 generator: torch.Generator) -> tuple[float, float, tuple[tuple[int, torch.Tensor], ...]]:
+        """Adam steps over ``views`` (newest first); returns (first loss, last loss, refined poses)."""
+        device, dtype = gmap.device, gmap.dtype
+        T_cw_init = [se3_inverse(v.T_wc).to(device=device, dtype=dtype) for v in views]
+        pose_deltas = {i: torch.zeros(6, device=device, dtype=dtype, requires_grad=True)
+                       for i, v in enumerate(views) if v.optimize_pose and self.config.lr_poses > 0}
+        pose_optimizer = torch.optim.Adam(list(pose_deltas.values()), lr=self.config.lr_poses) if pose_deltas else None
+        first = last = math.nan
+        for step in range(iterations):
+            if step % 2 == 0 or len(views) == 1:
+                index = 0
+            else:
+                index = 1 + int(torch.randint(len(views) - 1, (1,), generator=generator))
+            T_cw = T_cw_init[index]
+            if index in pose_deltas:
+                T_cw = se3_exp(pose_deltas[index]) @ T_cw
+            loss = self.view_loss(gmap, views[index], T_cw)
+            if not torch.isfinite(loss):
+                break  # never step on a non-finite loss: the map keeps its last finite state
+            optimizer.zero_grad()
+            if pose_optimizer is not None:
+                pose_optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            if pose_optimizer is not None:
+                pose_optimizer.step()
+            last = float(loss.detach())
+            first = last if math.isnan(first) else first
+        refined = tuple(
+            (views[i].keyframe_id, se3_inverse((se3_exp(delta.detach()) @ T_cw_init[i]).to(torch.float64).cpu()))
+            for i, delta in pose_deltas.items()
+        )
+        return first, last, refined
+
+    def map_keyframe(self, gmap: GaussianMap, optimizer: GaussianOptimizer, views: list[MappingView], *,
+                     iterations: int, generator: torch.Generator, frame_index: int) -> MappingResult:
+        """Densify at the newest view (``views[0]``), optimise over all views, prune."""
+        added = self.densify(gmap, optimizer, views[0], frame_index)
+        first, last, refined = self.optimize(gmap, optimizer, views, iterations, generator)
+        pruned = self.prune(gmap, optimizer, views[0])
+        return MappingResult(added, pruned, iterations, first, last, refined)

@@ -1,0 +1,249 @@
+"""The only frame loop: frame -> tracking -> keyframe decision -> mapping -> record -> checkpoint.
+
+:func:`run_slam` builds the stages (each from its own config section), restores or creates the
+:class:`~mipslam.state.SLAMState`, runs :func:`process_frame` on every frame, and writes the run
+folder (DESIGN.md "Outputs of a run"). Single process, deterministic for a seed on CPU; a
+checkpoint every ``run.checkpoint_every`` frames, at the end, and on Ctrl-C.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import OrderedDict
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from mipslam.checkpoint import load_latest_checkpoint, save_checkpoint
+from mipslam.config import Config, config_to_dict, config_to_yaml
+from mipslam.datasets import RGBDSequence, make_sequence
+from mipslam.errors import CheckpointError, ConfigError
+from mipslam.io.run_folder import RunFolder, write_json_atomic, write_text_atomic
+from mipslam.keyframes import covisibility, decide_keyframe, select_random_past, update_window_from_config
+from mipslam.mapping import Mapper, MappingResult, MappingView
+from mipslam.state import FrameRecord, SLAMState, update_running_loss
+from mipslam.tracking import Tracker, TrackingResult, constant_velocity_prediction, initial_result
+from mipslam.types import Frame
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    run_dir: Path
+    frames: int
+    keyframes: int
+    flagged: int
+    gaussians: int
+    seconds: float
+    metrics: dict | None
+
+    def describe(self) -> str:
+        fps = self.frames / self.seconds if self.seconds > 0 else math.nan
+        text = (f"run folder {self.run_dir}: {self.frames} frames ({fps:.2f} frames/s this session), "
+                f"{self.keyframes} keyframes, {self.gaussians} Gaussians, {self.flagged} frames flagged")
+        ate = (self.metrics or {}).get("trajectory", {}).get("ate")
+        if ate:
+            text += f"; ATE RMSE {ate['rmse'] * 100:.3f} cm"
+        return text
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` -> CUDA when available, else CPU; ``cuda`` without a GPU is a config error."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("config key 'run.device': cuda requested but torch sees no CUDA device; use auto or cpu")
+    return torch.device(name)
+
+
+class FrameCache:
+    """The last few frames read from the sequence (mapping revisits keyframes), moved to ``device``."""
+
+    def __init__(self, sequence: RGBDSequence, device: torch.device, capacity: int):
+        self.sequence, self.device, self.capacity = sequence, device, max(1, capacity)
+        self._frames: OrderedDict[int, Frame] = OrderedDict()
+
+    def __getitem__(self, index: int) -> Frame:
+        if index in self._frames:
+            self._frames.move_to_end(index)
+            return self._frames[index]
+        frame = self.sequence[index]
+        frame = replace(frame, color=frame.color.to(self.device), depth=frame.depth.to(self.device))
+        self._frames[index] = frame
+        while len(self._frames) > self.capacity:
+            self._frames.popitem(last=False)
+        return frame
+
+
+@dataclass
+class Stages:
+    """The stages of one run, each built from its own config section."""
+
+    config: Config
+    tracker: Tracker
+    mapper: Mapper
+    frames: FrameCache
+
+    @classmethod
+    def build(cls, config: Config, sequence: RGBDSequence, device: torch.device) -> "Stages":
+        capacity = config.keyframes.window_size + config.keyframes.random_past + 2
+        return cls(config, Tracker(config.tracking, config.render), Mapper(config.mapping, config.render),
+                   FrameCache(sequence, device, capacity))
+
+
+@contextmanager
+def _timed(state: SLAMState, stage: str):
+    start = time.perf_counter()
+    yield
+    state.add_timing(stage, time.perf_counter() - start)
+
+
+# ----------------------------------------------------------------------------- one frame
+
+def process_frame(stages: Stages, state: SLAMState, index: int, timestamp: float, T_wc_first: torch.Tensor) -> FrameRecord:
+    """Track, decide, map and record one frame; returns its record (also appended to ``state``)."""
+    frame = stages.frames[index]
+    with _timed(state, "tracking"):
+        tracked = track(stages, state, frame, T_wc_first)
+    with _timed(state, "keyframe"):
+        decision = decide_keyframe(stages.config.keyframes, frame.depth, tracked.T_wc, frame.intrinsics.matrix(),
+                                   *_last_keyframe(stages, state)) if tracked.ok else None
+    is_keyframe = bool(decision is not None and decision.is_keyframe)
+    record = FrameRecord(index, timestamp, tracked.T_wc, tracked.exposure, tracked.status, tracked.loss,
+                         tracked.iterations, len(state.keyframe_frames) if is_keyframe else -1,
+                         state.last_keyframe_id() if state.last_keyframe_id() is not None else -1)
+    state.frames.append(record)
+    with _timed(state, "mapping"):
+        if is_keyframe:
+            map_keyframe(stages, state, record)
+    if tracked.status == "ok":
+        state.running_loss = update_running_loss(state.running_loss, tracked.loss)
+    state.gaussian_counts.append(len(state.gaussian_map))
+    return state.frames[-1]
+
+
+def track(stages: Stages, state: SLAMState, frame: Frame, T_wc_first: torch.Tensor) -> TrackingResult:
+    """Tracking against the frozen map; the first frame (or any frame while the map is empty) defines the pose."""
+    poses = [f.T_wc for f in state.frames[-2:]]
+    if not poses:
+        return initial_result(T_wc_first)
+    prediction = constant_velocity_prediction(poses[-1], poses[-2] if len(poses) == 2 else None)
+    if len(state.gaussian_map) == 0:
+        return initial_result(prediction)
+    gaussians = state.gaussian_map.activated()
+    detached = type(gaussians)(*(t.detach() for t in (gaussians.means, gaussians.quats, gaussians.scales,
+                                                       gaussians.opacities, gaussians.colors)))
+    return stages.tracker.track(detached, frame, prediction, state.running_loss)
+
+
+def _last_keyframe(stages: Stages, state: SLAMState):
+    kf = state.last_keyframe_id()
+    if kf is None:
+        return None, None, None
+    record = state.keyframe_record(kf)
+    keyframe = stages.frames[record.index]
+    return keyframe.depth, record.T_wc, keyframe.intrinsics.matrix()
+
+
+def map_keyframe(stages: Stages, state: SLAMState, record: FrameRecord) -> MappingResult:
+    """Register the new keyframe, update the window and optimise the map over it."""
+    cfg = stages.config
+    new_id = record.keyframe_id
+    state.keyframe_frames.append(len(state.frames) - 1)
+    frame = stages.frames[record.index]
+    overlaps = {}
+    for kf in state.window:
+        other = state.keyframe_record(kf)
+        overlaps[kf] = covisibility(frame.depth, record.T_wc, frame.intrinsics.matrix(), stages.frames[other.index].depth,
+                                    other.T_wc)
+    state.window = list(update_window_from_config(state.window, new_id, overlaps, cfg.keyframes).window)
+    past = select_random_past(range(len(state.keyframe_frames)), state.window, cfg.keyframes.random_past, state.generator)
+    views = [_mapping_view(stages, state, kf) for kf in (*state.window, *past)]
+    iterations = cfg.mapping.first_frame_iterations if new_id == 0 else cfg.mapping.iterations
+    result = stages.mapper.map_keyframe(state.gaussian_map, state.optimizer, views, iterations=iterations,
+                                        generator=state.generator, frame_index=record.index)
+    for keyframe_id, T_wc in result.refined_T_wc:
+        state.set_keyframe_pose(keyframe_id, T_wc)
+    return result
+
+
+def _mapping_view(stages: Stages, state: SLAMState, keyframe_id: int) -> MappingView:
+    record = state.keyframe_record(keyframe_id)
+    frame = stages.frames[record.index]
+    return MappingView(keyframe_id, frame.color, frame.depth, record.T_wc, record.exposure.to(frame.color.device),
+                       frame.intrinsics, optimize_pose=keyframe_id != 0)
+
+
+# ----------------------------------------------------------------------------- the run
+
+def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evaluate: bool = True) -> RunSummary:
+    """Run SLAM on the configured sequence into ``run_dir`` (resuming from its last good checkpoint)."""
+    folder = RunFolder(run_dir).create()
+    folder.remove_stale_temporaries()
+    sequence = make_sequence(config.dataset)
+    device = resolve_device(config.run.device)
+    if config.run.threads:
+        torch.set_num_threads(config.run.threads)
+    state = _restore(folder, config, device) if resume else SLAMState.initial(config.mapping, config.run.seed, device)
+    write_text_atomic(folder.config_yaml, config_to_yaml(config))
+    stages = Stages.build(config, sequence, device)
+    T_wc_first = _first_pose(sequence)
+    started, start_frame = time.perf_counter(), state.next_frame
+    bar = tqdm(range(state.next_frame, len(sequence)), desc="mipslam", unit="frame", initial=state.next_frame,
+               total=len(sequence), dynamic_ncols=True, disable=None)
+    try:
+        for index in bar:
+            record = process_frame(stages, state, index, float(sequence.timestamps[index]), T_wc_first)
+            if not record.tracked:
+                log.warning("frame %d: tracking failed (%s); kept the motion-model pose", index, record.status)
+            if config.run.checkpoint_every and state.next_frame % config.run.checkpoint_every == 0:
+                _checkpoint(folder, state, config)
+            bar.set_postfix(gaussians=len(state.gaussian_map), loss=f"{record.tracking_loss:.4f}", refresh=False)
+    except KeyboardInterrupt:
+        _checkpoint(folder, state, config)
+        log.warning("interrupted: state saved after frame %d; continue with --resume %s", state.next_frame - 1, folder.root)
+        raise
+    finally:
+        bar.close()
+    _checkpoint(folder, state, config)
+    from mipslam.outputs import write_run_outputs
+
+    write_run_outputs(folder, state, sequence, config)
+    metrics = None
+    if evaluate and config.run.evaluate_at_end:
+        from mipslam.evaluation.run_eval import evaluate_run
+
+        metrics = evaluate_run(folder.root)
+        write_json_atomic(folder.metrics, metrics)
+    return RunSummary(folder.root, state.next_frame, len(state.keyframe_frames),
+                      sum(not f.tracked for f in state.frames), len(state.gaussian_map),
+                      time.perf_counter() - started if state.next_frame > start_frame else 0.0, metrics)
+
+
+def _first_pose(sequence: RGBDSequence) -> torch.Tensor:
+    """The map's frame: the first frame's ground-truth pose where known (so the estimate and the ground
+    truth share a frame before alignment), else the identity."""
+    gt = sequence.gt_T_wc
+    if gt is not None and bool(sequence.gt_valid[0]):
+        return gt[0].to(torch.float64).clone()
+    return torch.eye(4, dtype=torch.float64)
+
+
+def _checkpoint(folder: RunFolder, state: SLAMState, config: Config) -> Path:
+    tensors, metadata = state.to_checkpoint()
+    return save_checkpoint(folder.checkpoints, tensors, metadata, config=config_to_dict(config),
+                           keep=config.run.keep_checkpoints)
+
+
+def _restore(folder: RunFolder, config: Config, device: torch.device) -> SLAMState:
+    if not folder.checkpoints.is_dir():
+        raise CheckpointError(f"{folder.root}: nothing to resume (no checkpoints/ folder); start a run without --resume")
+    checkpoint = load_latest_checkpoint(folder.checkpoints, current_config=config_to_dict(config))
+    state = SLAMState.from_checkpoint(checkpoint.tensors, checkpoint.metadata, config.mapping, device)
+    log.info("resuming %s from %s (frame %d)", folder.root, checkpoint.path.name, state.next_frame)
+    return state

@@ -1,0 +1,166 @@
+"""SLAMState: everything that changes during a run. It is the checkpoint (DESIGN.md "State").
+
+Per processed frame a frozen :class:`FrameRecord`; the keyframes (id -> frame position), the
+window, the map with its optimizer state, the run's random generator, the running tracking loss,
+per-stage timings and the Gaussian count over time. :meth:`SLAMState.to_checkpoint` gives plain
+tensors plus JSON metadata (no pickled objects); :meth:`SLAMState.from_checkpoint` is its inverse.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import torch
+
+from mipslam.checkpoint import capture_rng_state, restore_rng_state, select_prefix, with_prefix
+from mipslam.config import MappingConfig
+from mipslam.gaussians import GaussianMap, GaussianOptimizer
+
+STATE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """What the run decided for one frame.
+
+    T_wc [4, 4] float64 camera-to-world estimate; exposure [2] (log_gain, bias); status is the
+    tracking status ("initial", "ok" or a failure reason); keyframe_id is -1 for non-keyframes;
+    reference_keyframe is the keyframe the frame was tracked after.
+    """
+
+    index: int
+    timestamp: float
+    T_wc: torch.Tensor
+    exposure: torch.Tensor
+    status: str
+    tracking_loss: float
+    tracking_iterations: int
+    keyframe_id: int
+    reference_keyframe: int
+
+    @property
+    def tracked(self) -> bool:
+        return self.status in ("initial", "ok")
+
+
+@dataclass
+class SLAMState:
+    gaussian_map: GaussianMap
+    optimizer: GaussianOptimizer
+    generator: torch.Generator
+    frames: list[FrameRecord] = field(default_factory=list)
+    keyframe_frames: list[int] = field(default_factory=list)  # keyframe id -> position in ``frames``
+    window: list[int] = field(default_factory=list)  # keyframe ids, newest first
+    running_loss: float | None = None
+    timings: dict[str, list[float]] = field(default_factory=dict)  # stage -> seconds per frame
+    gaussian_counts: list[int] = field(default_factory=list)
+
+    @classmethod
+    def initial(cls, mapping_config: MappingConfig, seed: int, device: torch.device) -> "SLAMState":
+        gmap = GaussianMap.empty(device=device)
+        generator = torch.Generator(device="cpu")
+        generator.manual_seed(seed)
+        return cls(gmap, GaussianOptimizer.from_config(gmap, mapping_config), generator)
+
+    # ------------------------------------------------------------------ queries
+
+    @property
+    def next_frame(self) -> int:
+        return len(self.frames)
+
+    def keyframe_record(self, keyframe_id: int) -> FrameRecord:
+        return self.frames[self.keyframe_frames[keyframe_id]]
+
+    def last_keyframe_id(self) -> int | None:
+        return len(self.keyframe_frames) - 1 if self.keyframe_frames else None
+
+    def poses(self) -> torch.Tensor:
+        """All estimated poses so far.  -> [F, 4, 4] float64"""
+        return torch.stack([f.T_wc for f in self.frames]) if self.frames else torch.zeros(0, 4, 4, dtype=torch.float64)
+
+    # ------------------------------------------------------------------ updates
+
+    def set_keyframe_pose(self, keyframe_id: int, T_wc: torch.Tensor) -> None:
+        position = self.keyframe_frames[keyframe_id]
+        self.frames[position] = replace(self.frames[position], T_wc=T_wc.to(torch.float64).cpu())
+
+    def add_timing(self, stage: str, seconds: float) -> None:
+        self.timings.setdefault(stage, []).append(float(seconds))
+
+    # ------------------------------------------------------------------ checkpoint
+
+    def to_checkpoint(self) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+        """Plain tensors and JSON metadata that :meth:`from_checkpoint` turns back into this state."""
+        frames = self.frames
+        tensors = {
+            "frames.index": torch.tensor([f.index for f in frames], dtype=torch.int64),
+            "frames.timestamp": torch.tensor([f.timestamp for f in frames], dtype=torch.float64),
+            "frames.T_wc": self.poses(),
+            "frames.exposure": torch.stack([f.exposure.float().cpu() for f in frames]) if frames else torch.zeros(0, 2),
+            "frames.tracking_loss": torch.tensor([f.tracking_loss for f in frames], dtype=torch.float64),
+            "frames.tracking_iterations": torch.tensor([f.tracking_iterations for f in frames], dtype=torch.int64),
+            "frames.keyframe_id": torch.tensor([f.keyframe_id for f in frames], dtype=torch.int64),
+            "frames.reference_keyframe": torch.tensor([f.reference_keyframe for f in frames], dtype=torch.int64),
+            "keyframe_frames": torch.tensor(self.keyframe_frames, dtype=torch.int64),
+            "window": torch.tensor(self.window, dtype=torch.int64),
+            **with_prefix("map", {k: v.detach().cpu() for k, v in self.gaussian_map.state_dict().items()}),
+            **with_prefix("optim", {k: v.detach().cpu() for k, v in self.optimizer.state_dict().items()}),
+        }
+        rng_tensors, rng_meta = capture_rng_state({"run": self.generator})
+        tensors.update(rng_tensors)
+        metadata = {
+            "state_version": STATE_VERSION,
+            "next_frame": self.next_frame,
+            "statuses": [f.status for f in frames],
+            "running_loss": self.running_loss,
+            "timings": self.timings,
+            "gaussian_counts": self.gaussian_counts,
+            "rng": rng_meta,
+        }
+        return tensors, metadata
+
+    @classmethod
+    def from_checkpoint(cls, tensors: dict[str, torch.Tensor], metadata: dict[str, Any],
+                        mapping_config: MappingConfig, device: torch.device) -> "SLAMState":
+        from mipslam.errors import CheckpointError
+
+        if metadata.get("state_version") != STATE_VERSION:
+            raise CheckpointError(f"checkpoint holds SLAM state version {metadata.get('state_version')}, this mipslam "
+                                  f"reads version {STATE_VERSION}; start a new run")
+        gmap = GaussianMap.from_state_dict(select_prefix("map", tensors), device=device)
+        optimizer = GaussianOptimizer.from_config(gmap, mapping_config)
+        optimizer.load_state_dict({k: v.to(device) for k, v in select_prefix("optim", tensors).items()})
+        generator = torch.Generator(device="cpu")
+        restore_rng_state(tensors, metadata["rng"], {"run": generator})
+        statuses = metadata["statuses"]
+        frames = [
+            FrameRecord(
+                index=int(tensors["frames.index"][i]),
+                timestamp=float(tensors["frames.timestamp"][i]),
+                T_wc=tensors["frames.T_wc"][i].clone(),
+                exposure=tensors["frames.exposure"][i].clone(),
+                status=statuses[i],
+                tracking_loss=float(tensors["frames.tracking_loss"][i]),
+                tracking_iterations=int(tensors["frames.tracking_iterations"][i]),
+                keyframe_id=int(tensors["frames.keyframe_id"][i]),
+                reference_keyframe=int(tensors["frames.reference_keyframe"][i]),
+            )
+            for i in range(len(statuses))
+        ]
+        running = metadata["running_loss"]
+        return cls(
+            gaussian_map=gmap, optimizer=optimizer, generator=generator, frames=frames,
+            keyframe_frames=[int(v) for v in tensors["keyframe_frames"].tolist()],
+            window=[int(v) for v in tensors["window"].tolist()],
+            running_loss=None if running is None else float(running),
+            timings={k: list(map(float, v)) for k, v in metadata["timings"].items()},
+            gaussian_counts=[int(v) for v in metadata["gaussian_counts"]],
+        )
+
+
+def update_running_loss(previous: float | None, loss: float, momentum: float = 0.9) -> float:
+    """Exponential moving average of good tracking losses (the level a loss jump is measured against)."""
+    if previous is None or not math.isfinite(previous):
+        return loss
+    return momentum * previous + (1 - momentum) * loss

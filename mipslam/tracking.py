@@ -1,0 +1,178 @@
+"""Tracking: optimise one camera pose (and an affine exposure) against the frozen map.
+
+The pose is parametrised as a left increment in the camera frame,
+``T_cw = exp(xi) T_cw_init`` with ``xi = [rho, phi]`` (se(3), translation first), and optimised with
+Adam on the loss of DESIGN.md ("Losses", tracking):
+``alpha_c * mean(M_rgb |exposure(I) - I_gt|) + (1 - alpha_c) * mean(M_d |D - D_gt|)``,
+where the masks keep valid depth, rendered opacity >= ``opacity_threshold`` (pixels the map explains)
+and, for colour, pixels above an image-gradient percentile. Optional coarse-to-fine: the first
+levels run at reduced resolution (area-averaged targets, intrinsics scaled with the pixel-centre rule).
+The renderer's pose-only backward is used (the map is frozen).
+
+Failure (non-finite loss, too few valid pixels, loss far above its running level) keeps the
+motion-model pose and is reported, never raised: the pipeline flags the frame and skips mapping.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from mipslam.config import RenderConfig, TrackingConfig
+from mipslam.evaluation.image_metrics import resize_area
+from mipslam.gaussians import ActivatedGaussians
+from mipslam.geometry.se3 import se3_exp, se3_inverse
+from mipslam.losses.photometric import apply_affine_exposure, image_gradient_mask, rgbd_l1_loss, rgbd_masks
+from mipslam.rendering import render_view
+from mipslam.types import Frame, Intrinsics
+
+# Fraction of the iteration budget given to the coarse levels (split evenly between them).
+_COARSE_SHARE = 0.5
+
+
+@dataclass(frozen=True)
+class TrackingResult:
+    """Outcome of tracking one frame.
+
+    T_wc:           [4, 4] float64 camera-to-world (the motion-model pose when tracking failed)
+    exposure:       [2] float32 (log_gain, bias) of the affine exposure model (zeros when off)
+    loss:           final loss at full resolution (NaN when it could not be computed)
+    iterations:     optimiser steps taken over all levels
+    valid_fraction: fraction of pixels in the depth term at full resolution
+    ok:             False when tracking failed (the frame is flagged and not mapped)
+    status:         "ok", "initial", "non_finite_loss", "too_few_valid_pixels" or "loss_jump"
+    """
+
+    T_wc: torch.Tensor
+    exposure: torch.Tensor
+    loss: float
+    iterations: int
+    valid_fraction: float
+    ok: bool
+    status: str
+
+
+def constant_velocity_prediction(T_wc_prev: torch.Tensor, T_wc_prev2: torch.Tensor | None) -> torch.Tensor:
+    """Pose predicted by repeating the last relative motion.  [4, 4] x [4, 4] -> [4, 4] float64
+
+    ``T_wc_pred = T_prev (T_prev2^-1 T_prev)``; with one previous pose, the pose itself.
+    """
+    if T_wc_prev2 is None:
+        return T_wc_prev.clone()
+    return T_wc_prev @ (se3_inverse(T_wc_prev2) @ T_wc_prev)
+
+
+@dataclass(frozen=True)
+class _Level:
+    intrinsics: Intrinsics
+    color: torch.Tensor  # [h, w, 3]
+    depth: torch.Tensor  # [h, w]
+    gradient_mask: torch.Tensor  # [h, w] bool
+    iterations: int
+
+
+class Tracker:
+    """Tracks frames against a frozen map (reads only the tracking and render config sections)."""
+
+    def __init__(self, config: TrackingConfig, render_config: RenderConfig):
+        self.config = config
+        self.render_config = render_config
+
+    def _levels(self, frame: Frame) -> list[_Level]:
+        cfg = self.config
+        scales = [s for s in cfg.coarse_to_fine if s < 1.0] + [1.0]
+        coarse_total = int(round(cfg.iterations * _COARSE_SHARE)) if len(scales) > 1 else 0
+        per_coarse = coarse_total // max(1, len(scales) - 1)
+        levels = []
+        for scale in scales:
+            if scale == 1.0:
+                color, depth, intrinsics = frame.color, frame.depth, frame.intrinsics
+                iterations = cfg.iterations - per_coarse * (len(scales) - 1)
+            else:
+                intrinsics = frame.intrinsics.scaled(scale)
+                color = resize_area(frame.color, scale)
+                depth = resize_area(frame.depth, scale, valid=frame.depth > 0)
+                iterations = per_coarse
+            if iterations <= 0:
+                continue
+            levels.append(_Level(intrinsics, color, depth, image_gradient_mask(color, cfg.gradient_mask_percentile),
+                                 iterations))
+        return levels
+
+    def _loss(self, gaussians: ActivatedGaussians, T_cw: torch.Tensor, level: _Level, exposure: torch.Tensor | None):
+        out = render_view(gaussians, T_cw, level.intrinsics, self.render_config, pose_only=True)
+        masks = rgbd_masks(level.color, level.depth, out.alpha, opacity_threshold=self.config.opacity_threshold,
+                           extra_color_mask=level.gradient_mask)
+        color = out.color if exposure is None else apply_affine_exposure(out.color, exposure[0], exposure[1])
+        return rgbd_l1_loss(color, out.depth, level.color, level.depth, alpha_color=self.config.alpha_color, masks=masks)
+
+    def track(
+        self,
+        gaussians: ActivatedGaussians,  # the frozen map (detached)
+        frame: Frame,  # on the map's device
+        T_wc_init: torch.Tensor,  # [4, 4] float64 motion-model prediction
+        running_loss: float | None,  # typical loss of recent good frames (None: not known yet)
+    ) -> TrackingResult:
+        cfg = self.config
+        device, dtype = gaussians.means.device, gaussians.means.dtype
+        T_cw_init = se3_inverse(T_wc_init.to(torch.float64)).to(device=device, dtype=dtype)
+        rho = torch.zeros(3, device=device, dtype=dtype, requires_grad=True)
+        phi = torch.zeros(3, device=device, dtype=dtype, requires_grad=True)
+        groups = [{"params": [rho], "lr": cfg.lr_translation}, {"params": [phi], "lr": cfg.lr_rotation}]
+        exposure = None
+        if cfg.use_exposure:
+            exposure = torch.zeros(2, device=device, dtype=dtype, requires_grad=True)
+            groups.append({"params": [exposure], "lr": cfg.lr_rotation})
+        optimizer = torch.optim.Adam(groups)
+
+        iterations = 0
+        best_loss, best = math.inf, (torch.zeros(6, dtype=dtype, device=device), None)
+        levels = self._levels(frame)
+        full = levels[-1]  # scale 1 is always last and gets at least half of the iterations
+        for level in levels:
+            for _ in range(level.iterations):
+                xi = torch.cat([rho, phi])
+                T_cw = se3_exp(xi) @ T_cw_init
+                loss = self._loss(gaussians, T_cw, level, exposure)
+                if not torch.isfinite(loss.total):
+                    return self._failed(T_wc_init, iterations, "non_finite_loss", math.nan, 0.0)
+                if level is full and float(loss.total) < best_loss:
+                    best_loss = float(loss.total)
+                    best = (xi.detach().clone(), None if exposure is None else exposure.detach().clone())
+                optimizer.zero_grad(set_to_none=True)
+                loss.total.backward()
+                before = xi.detach()
+                optimizer.step()
+                iterations += 1
+                step = float((torch.cat([rho, phi]).detach() - before).norm())
+                if step < cfg.convergence_threshold:
+                    break
+
+        # Evaluate the best pose once more at full resolution: its loss and valid-pixel count decide success.
+        xi_best, exposure_best = best
+        with torch.no_grad():
+            T_cw_best = se3_exp(xi_best) @ T_cw_init
+            last = self._loss(gaussians, T_cw_best, full, exposure_best)
+        total_pixels = frame.depth.numel()
+        valid_fraction = last.num_depth_pixels / max(1, total_pixels)
+        final_loss = float(last.total)
+        if not math.isfinite(final_loss):
+            return self._failed(T_wc_init, iterations, "non_finite_loss", math.nan, valid_fraction)
+        if valid_fraction < cfg.min_valid_fraction:
+            return self._failed(T_wc_init, iterations, "too_few_valid_pixels", final_loss, valid_fraction)
+        if running_loss is not None and final_loss > cfg.failure_loss_ratio * running_loss:
+            return self._failed(T_wc_init, iterations, "loss_jump", final_loss, valid_fraction)
+        T_wc = se3_inverse(T_cw_best.detach().to(torch.float64).cpu())
+        exposure_out = torch.zeros(2) if exposure_best is None else exposure_best.detach().float().cpu()
+        return TrackingResult(T_wc, exposure_out, final_loss, iterations, valid_fraction, True, "ok")
+
+    @staticmethod
+    def _failed(T_wc_init: torch.Tensor, iterations: int, status: str, loss: float, valid_fraction: float) -> TrackingResult:
+        return TrackingResult(T_wc_init.detach().to(torch.float64).cpu().clone(), torch.zeros(2), loss, iterations,
+                              valid_fraction, False, status)
+
+
+def initial_result(T_wc: torch.Tensor) -> TrackingResult:
+    """The first frame defines the map's frame: nothing to track against."""
+    return TrackingResult(T_wc.to(torch.float64).cpu().clone(), torch.zeros(2), 0.0, 0, 1.0, True, "initial")
