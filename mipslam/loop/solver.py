@@ -355,6 +355,12 @@ def _optimize_pose_graph(graph: PoseGraph, options: PGOOptions) -> PGOResult:
         total_sub += it_sub
         if options.prune_chi2 is None or round_index == options.max_prune_rounds:
             break
+        if not converged and basis is not None:
+            # a loop is judged only against a converged solution: the few full iterations after the
+            # subspace stage may leave correct loops with large residuals
+            poses, hist_more, it_more, converged = _levenberg_marquardt(problem, poses, options.max_iterations, options)
+            history = history + hist_more[1:]
+            total_it += it_more
         chi2 = mahalanobis_sq(edge_residuals(poses, edge_nodes, measurements), info_raw)
         kept_loops = keep & is_loop
         if not bool(kept_loops.any()):

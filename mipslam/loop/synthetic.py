@@ -7,8 +7,9 @@ In "noisy segments" (a fraction of the chain, in bursts) the noise is ``segment_
 times larger while the stated information stays nominal: tracking quality that the tracker's
 information does not reflect, which is the situation spectral edge weighting addresses. Loop
 edges join keyframes at the same place on different laps (every ``loop_every`` keyframes), with
-smaller noise; outlier loops join random far-apart keyframes with a wrong relative pose and the
-same information as correct loops. Initial poses are the odometry chain composed from the true
+smaller noise; outlier loops join random far-apart keyframes with a wrong relative pose (the true
+one times ``Exp(n)``, ``n ~ N(0, diag(outlier_translation_m^2 I3, outlier_rotation_rad^2 I3))``)
+and the same information as correct loops. Initial poses are the odometry chain composed from the true
 first pose, so the gauge node (0) is exact.
 """
 from __future__ import annotations
@@ -57,6 +58,8 @@ def make_synthetic_pose_graph(
     loop_sigma_rotation: float = 0.002,
     loop_every: int = 5,
     num_outlier_loops: int = 0,
+    outlier_translation_m: float = 1.0,
+    outlier_rotation_rad: float = 0.3,
     noisy_fraction: float = 0.0,
     segment_noise_factor: float = 5.0,
     segment_length: int = 10,
@@ -107,8 +110,8 @@ def make_synthetic_pose_graph(
             if j - i > max(10, num_nodes // 10):
                 break
         pairs.append((i, j))
-    wrong = torch.cat([torch.randn(num_outlier_loops, 3, generator=gen, dtype=torch.float64) * 1.0,
-                       torch.randn(num_outlier_loops, 3, generator=gen, dtype=torch.float64) * 0.3], -1)
+    wrong = torch.cat([torch.randn(num_outlier_loops, 3, generator=gen, dtype=torch.float64) * outlier_translation_m,
+                       torch.randn(num_outlier_loops, 3, generator=gen, dtype=torch.float64) * outlier_rotation_rad], -1)
     if pairs:
         ij = torch.tensor(pairs, dtype=torch.int64)
         Z = se3_inverse(truth[ij[:, 0]]) @ truth[ij[:, 1]] @ se3_exp(torch.cat([loop_noise, wrong]))
