@@ -137,8 +137,8 @@ class Tracker:
                 loss = self._loss(gaussians, T_cw, level, exposure)
                 if not torch.isfinite(loss.total):
                     return self._failed(T_wc_init, iterations, "non_finite_loss", math.nan, 0.0)
-                if level is full and float(loss.total) < best_loss:
-                    best_loss = float(loss.total)
+                if level is full and float(loss.total.detach()) < best_loss:
+                    best_loss = float(loss.total.detach())
                     best = (xi.detach().clone(), None if exposure is None else exposure.detach().clone())
                 optimizer.zero_grad(set_to_none=True)
                 loss.total.backward()

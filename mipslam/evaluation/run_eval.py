@@ -44,12 +44,20 @@ def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, associati
     by_index = info["dataset"]["timestamp_kind"] == "index"
     gt = read_tum_trajectory(folder.traj_gt, allow_duplicate_timestamps=True)
     est = read_tum_trajectory(folder.traj_est)
-    trajectory = evaluate_trajectory(
-        gt, est,
-        alignment=alignment or config.eval.alignment,
-        association=association or "timestamp",
-        max_diff=max_diff if max_diff is not None else (0.5 if by_index else config.eval.association_tolerance_s),
-    ).to_dict()
+    options = dict(association=association or "timestamp",
+                   max_diff=max_diff if max_diff is not None else (0.5 if by_index else config.eval.association_tolerance_s))
+    requested = alignment or config.eval.alignment
+    try:
+        trajectory = evaluate_trajectory(gt, est, alignment=requested, **options).to_dict()
+    except EvaluationError as exc:
+        # A camera at rest or moving on a line leaves the alignment's rotation undetermined. Runs start
+        # at the ground-truth pose of their first frame, so the unaligned error is meaningful there.
+        if requested == "none" or "cannot align" not in str(exc):
+            raise
+        trajectory = evaluate_trajectory(gt, est, alignment="none", **options).to_dict()
+        trajectory["protocol"]["alignment"]["fallback"] = (
+            f"{requested} alignment impossible ({exc}); evaluated without alignment: the run's first pose is the "
+            "ground-truth pose of its first frame")
     if by_index:
         trajectory["protocol"]["association"]["note"] = (
             "timestamps are frame indices (Replica layout): frames match by index")
