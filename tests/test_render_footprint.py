@@ -6,9 +6,11 @@ import math
 import pytest
 import torch
 
+from mipslam.render import RenderOptions
 from mipslam.render import footprint as fp
 
 K_SIGMA = 3.0
+DEFAULTS = RenderOptions()  # the EAA constants users get
 
 
 def closed_form_box_integral(px, py, mx, my, sx, sy, opacity):
@@ -54,10 +56,12 @@ def mean_abs_error_against_exact(mode, dtype=torch.float32, **eaa):
     cxx, cxy, cyy, cdet, co = fp.footprint_parameters(mode, xx, xy, yy, det, o)
     nodes = None
     if mode == "eaa":
-        nodes = fp.eaa_node_counts(cxx, cxy, cyy, cdet, max_nodes=eaa.get("max_nodes", 8),
-                                   gamma=eaa.get("gamma", 1.0), point_area=eaa.get("point_area", 4.0))
+        nodes = fp.eaa_node_counts(cxx, cxy, cyy, cdet, max_nodes=eaa.get("max_nodes", DEFAULTS.eaa_max_nodes),
+                                   gamma=eaa.get("gamma", DEFAULTS.eaa_gamma),
+                                   point_area=eaa.get("point_area", DEFAULTS.eaa_point_area))
     value = fp.pixel_opacity(mode, px, py, mx, my, cxx, cxy, cyy, cdet, co, nodes, k_sigma=K_SIGMA,
-                             row_capacity=eaa.get("max_nodes", 8), eta=eaa.get("eta", 0.0), tau=eaa.get("tau", 0.25))
+                             row_capacity=eaa.get("max_nodes", DEFAULTS.eaa_max_nodes),
+                             eta=eaa.get("eta", DEFAULTS.eaa_eta), tau=eaa.get("tau", DEFAULTS.eaa_tau))
     return (value.double() - exact).abs().mean().item()
 
 
@@ -118,16 +122,17 @@ def test_eaa_is_exact_for_axis_aligned_and_enclosed_gaussians():
 
 def test_large_round_gaussians_use_one_node_and_equal_the_undilated_point_value():
     dtype = torch.float32
-    sigma = torch.tensor([3.0, 5.0, 12.0, 40.0], dtype=dtype)
+    sigma = torch.tensor([5.0, 8.0, 12.0, 40.0], dtype=dtype)
     xx, xy, yy = sigma**2 * 1.0, torch.zeros_like(sigma), sigma**2 * 1.2  # kappa ~ 1.1: round
     det = xx * yy
-    nodes = fp.eaa_node_counts(xx, xy, yy, det, max_nodes=8, gamma=1.0, point_area=4.0)
+    nodes = fp.eaa_node_counts(xx, xy, yy, det, max_nodes=DEFAULTS.eaa_max_nodes, gamma=DEFAULTS.eaa_gamma,
+                               point_area=DEFAULTS.eaa_point_area)
     assert nodes.tolist() == [1, 1, 1, 1]
     mx, my = torch.tensor(0.37), torch.tensor(-1.2)
     px, py = neighbourhood(4, dtype)
     o = torch.full_like(sigma, 0.8)
-    eaa = fp.eaa_pixel_opacity(px, py, mx, my, xx, xy, yy, det, o, nodes, row_capacity=8, k_sigma=K_SIGMA,
-                               eta=0.0, tau=0.25)
+    eaa = fp.eaa_pixel_opacity(px, py, mx, my, xx, xy, yy, det, o, nodes, row_capacity=4, k_sigma=K_SIGMA,
+                               eta=DEFAULTS.eaa_eta, tau=DEFAULTS.eaa_tau)
     dx, dy = px - mx, py - my
     point = o * torch.exp(-0.5 * (dx * dx / xx + dy * dy / yy))  # undilated centre sample, computed here
     assert (eaa - point).abs().max().item() < 1e-3
@@ -140,10 +145,13 @@ def test_node_counts_grow_with_anisotropy_and_respect_the_cap():
     theta = torch.tensor(0.4)
     kappas = torch.tensor([1.0, 2.0, 5.0, 20.0, 100.0, 1000.0])
     xx, xy, yy, det = rotated_covariance(torch.full_like(kappas, 0.6), kappas, theta)
-    counts = fp.eaa_node_counts(xx, xy, yy, det, max_nodes=8, gamma=1.0, point_area=4.0)
-    assert counts[0].item() == 2  # small and round: the smallest analytic rule
-    assert torch.all(counts[1:] >= counts[:-1])
-    assert counts.max().item() == 8
+    counts = fp.eaa_node_counts(xx, xy, yy, det, max_nodes=8, gamma=1.0, point_area=16.0)
+    # n = round(2 (1 + ln kappa)): 2, 3, 5, 8 (capped), 8, 8
+    assert counts.tolist() == [2, 3, 5, 8, 8, 8]
+    defaults = fp.eaa_node_counts(xx, xy, yy, det, max_nodes=DEFAULTS.eaa_max_nodes, gamma=DEFAULTS.eaa_gamma,
+                                  point_area=DEFAULTS.eaa_point_area)
+    assert defaults[0].item() == 2 and torch.all(defaults[1:] >= defaults[:-1])
+    assert defaults.max().item() == DEFAULTS.eaa_max_nodes
     capped = fp.eaa_node_counts(xx, xy, yy, det, max_nodes=1, gamma=1.0, point_area=4.0)
     assert capped.tolist() == [1] * 6
 

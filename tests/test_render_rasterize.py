@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from mipslam.errors import BackendUnavailableError, RenderError
-from mipslam.render import Camera, render
+from mipslam.render import Camera, RenderOptions, render
 from mipslam.render import rasterize as rasterize_any_backend
 from mipslam.render import footprint as fp
 from mipslam.render.composite import ALPHA_MIN, blend_weights, clamp_alpha, composite
@@ -83,16 +83,20 @@ def test_empty_scene_is_black():
 def brute_force(means, quats, scales, opacities, colors, viewmat, K, width, height, mode, k_sigma=3.0):
     """Every pixel against every visible Gaussian, no tiles."""
     proj = project_gaussians(means, quats, scales, opacities, colors, viewmat, K, width, height,
-                             extent_pad=0.5 if mode in ("eaa", "exact") else 0.0)
+                             extent_sigma=fp.EXACT_K_SIGMA if mode == "exact" else k_sigma,
+                             extent_pad=0.5 if mode in ("eaa", "exact") else 0.0,
+                             extent_dilation=fp.MODE_DILATION.get(mode, 0.0))
     ids = torch.nonzero(proj.visible).squeeze(1)
     ids = ids[torch.argsort(proj.depths[ids], stable=True)]
     xx, xy, yy = proj.cov2d[ids].unbind(-1)
     xx, xy, yy, det, o = fp.footprint_parameters(mode, xx, xy, yy, proj.cov_det[ids], proj.opacities[ids])
-    nodes = fp.eaa_node_counts(xx, xy, yy, det, max_nodes=8, gamma=1.0, point_area=4.0)
+    d = RenderOptions()
+    nodes = fp.eaa_node_counts(xx, xy, yy, det, max_nodes=d.eaa_max_nodes, gamma=d.eaa_gamma,
+                               point_area=d.eaa_point_area)
     v, u = torch.meshgrid(torch.arange(height, dtype=means.dtype), torch.arange(width, dtype=means.dtype),
                           indexing="ij")
     a = fp.pixel_opacity(mode, u.reshape(-1, 1), v.reshape(-1, 1), proj.means2d[ids, 0], proj.means2d[ids, 1],
-                         xx, xy, yy, det, o, nodes, k_sigma=k_sigma, row_capacity=8)
+                         xx, xy, yy, det, o, nodes, k_sigma=k_sigma, row_capacity=d.eaa_max_nodes)
     color, depth, alpha = composite(a, proj.colors[ids].unsqueeze(0), proj.depths[ids])
     return color.view(height, width, -1), depth.view(height, width), alpha.view(height, width)
 

@@ -19,7 +19,7 @@ from functools import lru_cache
 import torch
 
 from mipslam.errors import BackendUnavailableError, RenderError
-from mipslam.render.footprint import MODE_DILATION, MODES
+from mipslam.render.footprint import EXACT_K_SIGMA, MODE_DILATION, MODES
 from mipslam.render.projection import ProjectedGaussians, project_gaussians
 from mipslam.render.rasterize_torch import FootprintSettings, rasterize_projected
 
@@ -55,11 +55,11 @@ class RenderOptions:
     near_plane: float = 0.01
     far_plane: float = 1e10
     k_sigma: float = 3.0
-    eaa_max_nodes: int = 8
-    eaa_gamma: float = 1.0
+    eaa_max_nodes: int = 4
+    eaa_gamma: float = 0.5
     eaa_eta: float = 0.0
     eaa_tau: float = 0.25
-    eaa_point_area: float = 4.0
+    eaa_point_area: float = 16.0
     filter_3d_scale: float | None = None
     max_sampling_rate: torch.Tensor | None = None
     pose_only: bool = False
@@ -234,7 +234,8 @@ def rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width: 
     box_mode = mode in ("eaa", "exact")
     proj = project_gaussians(
         means, quats, scales, opacities, colors, viewmat, K, width, height, near_plane=opts.near_plane,
-        far_plane=opts.far_plane, extent_sigma=opts.k_sigma, extent_pad=0.5 if box_mode else 0.0,
+        far_plane=opts.far_plane, extent_sigma=EXACT_K_SIGMA if mode == "exact" else opts.k_sigma,
+        extent_pad=0.5 if box_mode else 0.0, extent_dilation=MODE_DILATION.get(mode, 0.0),
         filter_3d_scale=opts.filter_3d_scale,
         max_sampling_rate=opts.max_sampling_rate)
     settings = FootprintSettings(mode=mode, k_sigma=opts.k_sigma, max_nodes=int(opts.eaa_max_nodes),

@@ -85,15 +85,16 @@ def filter_3d_variance(depths: torch.Tensor, K: torch.Tensor, filter_scale: floa
 
 def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
                       colors: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, *,
-                      near_plane: float = 0.01, far_plane: float = 1e10, extent_sigma: float = 3.0, extent_pad: float = 0.0,
+                      near_plane: float = 0.01, far_plane: float = 1e10, extent_sigma: float = 3.0,
+                      extent_pad: float = 0.0, extent_dilation: float = 0.0,
                       filter_3d_scale: float | None = None,
                       max_sampling_rate: torch.Tensor | None = None) -> ProjectedGaussians:
     """Project Gaussians with the EWA linearisation.
 
     means [N, 3] world metres, quats [N, 4] wxyz (any norm), scales [N, 3] std-devs in metres,
     opacities [N] in [0, 1], colors [N, C], viewmat [4, 4] world-to-camera (T_cw), K [3, 3].
-    ``extent_sigma`` and ``extent_pad`` (px) give the box used for the on-screen test
-    (``k * sqrt(diag Sigma) + pad`` around the centre). ``filter_3d_scale`` (e.g. 0.2) turns on the
+    ``extent_sigma``, ``extent_dilation`` (px^2) and ``extent_pad`` (px) give the box of the on-screen
+    test: ``k * sqrt(diag Sigma + dilation) + pad`` around the centre (the footprint mode's support). ``filter_3d_scale`` (e.g. 0.2) turns on the
     Mip-Splatting 3D filter: ``Sigma3D + (s / nu^2) I`` and opacity times
     ``sqrt(det Sigma3D / det(Sigma3D + (s / nu^2) I))``.
     """
@@ -162,8 +163,8 @@ def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
 
     finite2d = torch.isfinite(means2d).all(-1) & torch.isfinite(cov_xx) & torch.isfinite(cov_yy) \
         & torch.isfinite(cov_xy) & torch.isfinite(cov_det)
-    ext_x = extent_sigma * torch.sqrt(cov_xx) + extent_pad
-    ext_y = extent_sigma * torch.sqrt(cov_yy) + extent_pad
+    ext_x = extent_sigma * torch.sqrt(cov_xx + extent_dilation) + extent_pad
+    ext_y = extent_sigma * torch.sqrt(cov_yy + extent_dilation) + extent_pad
     on_screen = (u + ext_x > -0.5) & (u - ext_x < width - 0.5) & (v + ext_y > -0.5) & (v - ext_y < height - 0.5)
     visible = keep & finite2d & on_screen & (opacities > 0)
 

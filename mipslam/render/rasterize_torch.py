@@ -181,10 +181,13 @@ def rasterize_projected(proj: ProjectedGaussians, width: int, height: int, setti
         args = (pix_x, pix_y, g_mean_x[g][:, None], g_mean_y[g][:, None], g_xx[g][:, None], g_xy[g][:, None],
                 g_yy[g][:, None], g_det[g][:, None], g_opacity[g][:, None], g_depth[g][:, None], g_colors[g],
                 g_nodes[g][:, None])
+        batch_settings = settings_batch
+        if settings.mode == "eaa":  # evaluate only as many rows as this batch's Gaussians need
+            batch_settings = FootprintSettings(**{**settings_batch.__dict__, "max_nodes": int(g_nodes[g].max())})
         if checkpoint and torch.is_grad_enabled():
-            out = torch_checkpoint(_render_batch, settings_batch, *args, use_reentrant=False)
+            out = torch_checkpoint(_render_batch, batch_settings, *args, use_reentrant=False)
         else:
-            out = _render_batch(settings_batch, *args)
+            out = _render_batch(batch_settings, *args)
         results.append(out)
         done_tiles.append(tiles)
 
