@@ -47,7 +47,8 @@ from mipslam.datasets.base import (
     read_text_rows,
 )
 from mipslam.errors import ConfigError, DatasetError
-from mipslam.geometry import quat_wxyz_to_rotmat, quat_xyzw_to_wxyz, se3_from_rt, so3_exp, so3_log
+from mipslam.io.tum import read_tum_trajectory as read_trajectory_file
+from mipslam.geometry import se3_from_rt, so3_exp, so3_log
 
 logger = logging.getLogger(__name__)
 
@@ -59,7 +60,6 @@ TUM_CAMERAS: dict[str, tuple[float, float, float, float]] = {
     "freiburg3": (535.4, 539.2, 320.1, 247.6),
 }
 # A quaternion in groundtruth.txt whose norm is further than this from 1 is rejected (files carry 4 decimals).
-QUATERNION_NORM_TOLERANCE = 1e-2
 _CAMERA_IN_NAME = re.compile(r"(?:^|[^a-z0-9])(?:freiburg|fr)([123])(?![0-9])")
 
 
@@ -92,34 +92,18 @@ def read_tum_list(path: Path) -> tuple[np.ndarray, list[str], list[int]]:
     return np.asarray(stamps, dtype=np.float64), names, lines
 
 
-def read_tum_trajectory(path: Path) -> tuple[np.ndarray, torch.Tensor, list[int]]:
-    """A TUM trajectory file (groundtruth.txt).  -> (timestamps float64 [M], T_wc float64 [M, 4, 4], line numbers)
+def read_ground_truth(path: Path) -> tuple[np.ndarray, torch.Tensor]:
+    """A TUM ground-truth file (groundtruth.txt).  -> (timestamps float64 [M], T_wc float64 [M, 4, 4])
 
-    Lines are ``timestamp tx ty tz qx qy qz qw`` (camera-to-world, quaternion xyzw). Raises
-    DatasetError (file and line) for short/malformed lines, non-finite values, a quaternion that
-    is not of unit norm (within 1e-2), unsorted or duplicate timestamps, or no poses at all.
+    Read and validated by :func:`mipslam.io.tum.read_tum_trajectory` (DatasetError with file and
+    line). The benchmark's own files repeat a timestamp now and then (fr2_desk line 10863); the
+    first pose of a repeated timestamp is kept so interpolation between neighbours stays defined.
     """
-    rows = read_text_rows(path)
-    values, lines = [], []
-    for line, fields in rows:
-        if len(fields) != 8:
-            raise DatasetError(path, f"expected 8 numbers 'timestamp tx ty tz qx qy qz qw', got {len(fields)}", line)
-        values.append([parse_float(f, path, line, "value") for f in fields])
-        lines.append(line)
-    if not values:
-        raise DatasetError(path, "has no poses")
-    data = np.asarray(values, dtype=np.float64)
-    check_increasing(data[:, 0].tolist(), lines, path, "timestamp")
-    norms = np.linalg.norm(data[:, 4:8], axis=1)
-    bad = np.flatnonzero(np.abs(norms - 1.0) > QUATERNION_NORM_TOLERANCE)
-    if bad.size:
-        k = int(bad[0])
-        raise DatasetError(
-            path, f"quaternion qx qy qz qw has norm {norms[k]:.6g}; a rotation needs a unit quaternion (non-rigid pose)", lines[k]
-        )
-    q_wxyz = quat_xyzw_to_wxyz(torch.from_numpy(data[:, 4:8].copy()))
-    T_wc = se3_from_rt(quat_wxyz_to_rotmat(q_wxyz), torch.from_numpy(data[:, 1:4].copy()))
-    return data[:, 0].copy(), T_wc, lines
+    trajectory = read_trajectory_file(path, allow_duplicate_timestamps=True)
+    keep = np.concatenate([[True], np.diff(trajectory.timestamps) > 0])
+    if not keep.all():
+        logger.info("%s: %d repeated timestamp(s); the first pose of each is used", path, int((~keep).sum()))
+    return trajectory.timestamps[keep].copy(), torch.from_numpy(trajectory.T_wc[keep].copy())
 
 
 def associate_timestamps(first: np.ndarray, second: np.ndarray, tolerance: float) -> list[tuple[int, int]]:
@@ -264,7 +248,7 @@ class TUMSequence(SequenceBase):
         gt_path = self.root / "groundtruth.txt"
         gt_T_wc = gt_valid = None
         if gt_path.exists():
-            gt_times, gt_poses, _ = read_tum_trajectory(gt_path)
+            gt_times, gt_poses = read_ground_truth(gt_path)
             frame_times = np.array([r.timestamp for r in records], dtype=np.float64)
             gt_T_wc, gt_valid = poses_at_times(gt_times, gt_poses, frame_times, tolerance)
             if not gt_valid.any():
