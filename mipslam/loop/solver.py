@@ -134,6 +134,35 @@ class PGOResult:
 
 
 @dataclass(frozen=True)
+class _BlockPattern:
+    """Sparsity pattern of H for a fixed edge set, built once per problem: every COO entry's slot
+    in the CSC data array, so each iteration only sums values (no sorting, no duplicates)."""
+
+    slot: np.ndarray  # [4 E 36 + fixed dofs] -> index into data
+    indices: np.ndarray  # CSC row indices [nnz]
+    indptr: np.ndarray  # CSC column pointers [6N + 1]
+    i6: np.ndarray  # [E, 6] dof indices of node i
+    j6: np.ndarray  # [E, 6] dof indices of node j
+    num_fixed_dofs: int
+    size: int  # 6N
+
+    @staticmethod
+    def build(edge_nodes: np.ndarray, num_nodes: int, fixed_mask: np.ndarray) -> "_BlockPattern":
+        i6 = edge_nodes[:, 0][:, None] * 6 + np.arange(6)[None, :]  # [E, 6]
+        j6 = edge_nodes[:, 1][:, None] * 6 + np.arange(6)[None, :]
+        rows = np.stack([np.broadcast_to(r[:, :, None], r.shape + (6,)) for r in (i6, i6, j6, j6)])  # [4, E, 6, 6]
+        cols = np.stack([np.broadcast_to(c[:, None, :], c.shape[:1] + (6, 6)) for c in (i6, j6, i6, j6)])
+        fixed_dofs = np.flatnonzero(np.repeat(fixed_mask, 6))
+        n6 = 6 * num_nodes
+        key = np.concatenate([cols.ravel(), fixed_dofs]).astype(np.int64) * n6 + np.concatenate([rows.ravel(), fixed_dofs])
+        unique, slot = np.unique(key, return_inverse=True)
+        column = unique // n6
+        return _BlockPattern(slot=slot.ravel(), indices=(unique % n6).astype(np.int32),
+                             indptr=np.searchsorted(column, np.arange(n6 + 1)).astype(np.int32),
+                             i6=i6, j6=j6, num_fixed_dofs=fixed_dofs.size, size=n6)
+
+
+@dataclass(frozen=True)
 class _Problem:
     """The fixed objective of one LM run (CPU float64)."""
 
@@ -145,6 +174,15 @@ class _Problem:
     fixed_mask: np.ndarray  # [N] bool
     kernel: RobustKernel
     kernel_scale: float
+    pattern: _BlockPattern = field(init=False)
+    free_i: torch.Tensor = field(init=False)  # [E, 1, 1] 0 where node i is a gauge node
+    free_j: torch.Tensor = field(init=False)
+
+    def __post_init__(self):
+        nodes = self.edge_nodes.numpy()
+        object.__setattr__(self, "pattern", _BlockPattern.build(nodes, self.num_nodes, self.fixed_mask))
+        object.__setattr__(self, "free_i", torch.as_tensor(~self.fixed_mask[nodes[:, 0]], dtype=torch.float64)[:, None, None])
+        object.__setattr__(self, "free_j", torch.as_tensor(~self.fixed_mask[nodes[:, 1]], dtype=torch.float64)[:, None, None])
 
     def evaluate(self, poses: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
         """(F, residuals [E, 6], s [E]) at ``poses`` [N, 4, 4]."""
@@ -158,32 +196,21 @@ class _Problem:
 
 
 def _normal_equations(problem: _Problem, poses: torch.Tensor, residuals: torch.Tensor, s: torch.Tensor):
-    """Sparse H = J^T W J [6N, 6N] and dense b = J^T W e [6N]; gauge nodes' columns are zero."""
+    """Sparse H = J^T W J [6N, 6N] (CSC) and dense b = J^T W e [6N]; gauge nodes' columns are zero."""
     J_i, J_j = edge_jacobians(poses, problem.edge_nodes, residuals)  # [E, 6, 6] each
     W = problem.weights(s)[:, None, None] * problem.information  # [E, 6, 6]
-    nodes = problem.edge_nodes.numpy()
-    free_i = torch.as_tensor(~problem.fixed_mask[nodes[:, 0]], dtype=torch.float64)[:, None, None]
-    free_j = torch.as_tensor(~problem.fixed_mask[nodes[:, 1]], dtype=torch.float64)[:, None, None]
-    J_i, J_j = J_i * free_i, J_j * free_j
+    J_i, J_j = J_i * problem.free_i, J_j * problem.free_j
     WJ_i, WJ_j = W @ J_i, W @ J_j
     JiT, JjT = J_i.transpose(1, 2), J_j.transpose(1, 2)
     blocks = torch.stack([JiT @ WJ_i, JiT @ WJ_j, JjT @ WJ_i, JjT @ WJ_j]).numpy()  # [4, E, 6, 6]
-    We = (W @ residuals[:, :, None])  # [E, 6, 1]
+    We = W @ residuals[:, :, None]  # [E, 6, 1]
     b_i, b_j = (JiT @ We)[..., 0].numpy(), (JjT @ We)[..., 0].numpy()
-
-    i6 = nodes[:, 0][:, None] * 6 + np.arange(6)[None, :]  # [E, 6]
-    j6 = nodes[:, 1][:, None] * 6 + np.arange(6)[None, :]
-    row_nodes = (i6, i6, j6, j6)
-    col_nodes = (i6, j6, i6, j6)
-    rows = np.stack([np.broadcast_to(r[:, :, None], r.shape + (6,)) for r in row_nodes])  # [4, E, 6, 6]
-    cols = np.stack([np.broadcast_to(c[:, None, :], c.shape[:1] + (6, 6)) for c in col_nodes])
-    n6 = 6 * problem.num_nodes
-    fixed_dofs = np.flatnonzero(np.repeat(problem.fixed_mask, 6))
-    data = np.concatenate([blocks.ravel(), np.ones(fixed_dofs.size)])
-    H = scipy.sparse.csc_matrix(
-        (data, (np.concatenate([rows.ravel(), fixed_dofs]), np.concatenate([cols.ravel(), fixed_dofs]))), shape=(n6, n6)
-    )
-    b = np.bincount(np.r_[i6.ravel(), j6.ravel()], weights=np.r_[b_i.ravel(), b_j.ravel()], minlength=n6)
+    pattern = problem.pattern
+    values = np.concatenate([blocks.ravel(), np.ones(pattern.num_fixed_dofs)])
+    data = np.bincount(pattern.slot, weights=values, minlength=pattern.indices.size)
+    H = scipy.sparse.csc_matrix((data, pattern.indices, pattern.indptr), shape=(pattern.size, pattern.size))
+    b = np.bincount(np.r_[pattern.i6.ravel(), pattern.j6.ravel()], weights=np.r_[b_i.ravel(), b_j.ravel()],
+                    minlength=pattern.size)
     return H, b
 
 
