@@ -17,9 +17,11 @@ With ``low_frequency_correction`` the update is ``delta = (U_K kron I6) c`` with
 smoothest modes of the grounded keyframe-graph Laplacian; LM runs on the 6K coefficients c
 (dense 6K x 6K system ``B^T H B``), then ``full_iterations`` plain LM iterations follow.
 
-After convergence, loop edges whose chi-square ``e^T Omega e`` (raw information) exceeds
-``prune_chi2`` disagree with the rest of the graph: they are pruned and the optimisation is
-repeated from the initial poses without them (at most ``max_prune_rounds`` times).
+After convergence (an unconverged subspace + few-full-iterations result is first run to
+convergence), loop edges whose chi-square ``e^T Omega e`` (raw information) exceeds both
+``prune_chi2`` and ``prune_median_factor`` x the median over the kept loops disagree with the
+rest of the graph: they are pruned and the optimisation continues from the current poses without
+them (at most ``max_prune_rounds`` times).
 All arithmetic is float64 on the CPU (torch for the per-edge algebra, numpy/scipy for the
 sparse linear algebra); the poses come back on the graph's device.
 """
@@ -113,7 +115,8 @@ class PGOResult:
     loop_weights: final IRLS weight rho'(s) of every input edge (1 for odometry, 0 for pruned)  # [E]
     edge_chi2: final e^T Omega e of every input edge with its raw information                  # [E]
     spectral_weights: translation/rotation information scales (all 1 when switched off)       # [E, 2]
-    converged: the last round stopped on a tolerance, not on the iteration cap
+    converged: the full problem's LM stopped on a tolerance in the last round (False after a
+        subspace-only stage or on the iteration cap)
     time_s: wall-clock seconds of the whole call
     """
 
@@ -299,11 +302,15 @@ def _levenberg_marquardt(
 
 
 def _solve_round(problem: _Problem, poses0: torch.Tensor, options: PGOOptions, basis: np.ndarray | None):
-    """One optimisation: subspace LM then full LM (or full LM alone)."""
+    """One optimisation: subspace LM then full LM (or full LM alone).
+
+    Returns (poses, history, iterations, subspace iterations, converged); ``converged`` means the
+    full (not the subspace) problem converged, so it is False after a subspace-only stage.
+    """
     if basis is not None:
-        poses, hist, it_sub, conv = _levenberg_marquardt(problem, poses0, options.subspace_iterations, options, basis,
-                                                         options.subspace_relative_tolerance)
-        it_full = 0
+        poses, hist, it_sub, _ = _levenberg_marquardt(problem, poses0, options.subspace_iterations, options, basis,
+                                                      options.subspace_relative_tolerance)
+        it_full, conv = 0, False
         if options.full_iterations > 0:
             poses, hist_full, it_full, conv = _levenberg_marquardt(problem, poses, options.full_iterations, options)
             hist = hist + hist_full[1:]
@@ -383,8 +390,8 @@ def _optimize_pose_graph(graph: PoseGraph, options: PGOOptions) -> PGOResult:
         if options.prune_chi2 is None or round_index == options.max_prune_rounds:
             break
         if not converged and basis is not None:
-            # a loop is judged only against a converged solution: the few full iterations after the
-            # subspace stage may leave correct loops with large residuals
+            # a loop is judged only against a converged full solution: the subspace stage and the few
+            # full iterations after it may leave correct loops with large residuals
             poses, hist_more, it_more, converged = _levenberg_marquardt(problem, poses, options.max_iterations, options)
             history = history + hist_more[1:]
             total_it += it_more
