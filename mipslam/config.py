@@ -91,10 +91,12 @@ class RenderConfig:
     backend: Literal["auto", "torch", "cpu"] = "auto"
     filter_3d: bool = False  # Mip-Splatting 3D smoothing filter
     filter_3d_scale: float = 0.2
-    eaa_max_nodes: int = 8
-    eaa_gamma: float = 1.0
-    eaa_eta: float = 2.0
-    eaa_tau: float = 0.25
+    # EAA constants: defaults measured against `exact` (docs/renderer.md, benchmarks/bench_aliasing.py).
+    eaa_max_nodes: int = 4  # node cap n_max: the speed/accuracy knob (1 = point value)
+    eaa_gamma: float = 0.5  # node growth with anisotropy: n = n_size (1 + gamma ln kappa)
+    eaa_eta: float = 0.0  # boundary emphasis b(d) = 1 + eta exp(-d / tau)
+    eaa_tau: float = 0.25  # pixels
+    eaa_point_area: float = 16.0  # sigma1*sigma2 (px^2) from which a round splat needs only 1 node
     eaa_k_sigma: float = 3.0
     near_plane: float = 0.01
 
@@ -103,6 +105,7 @@ class RenderConfig:
         _check(self.eaa_gamma >= 0, "render.eaa_gamma", "must be >= 0")
         _check(self.eaa_eta >= 0, "render.eaa_eta", "must be >= 0")
         _check(self.eaa_tau > 0, "render.eaa_tau", "must be positive")
+        _check(self.eaa_point_area > 0, "render.eaa_point_area", "must be positive (px^2)")
         _check(self.eaa_k_sigma > 0, "render.eaa_k_sigma", "must be positive")
         _check(self.filter_3d_scale > 0, "render.filter_3d_scale", "must be positive")
         _check(self.near_plane > 0, "render.near_plane", "must be positive")
@@ -128,6 +131,7 @@ class TrackingConfig:
         _check(self.lr_translation > 0 and self.lr_rotation > 0, "tracking.lr_*", "learning rates must be positive")
         _check(all(0 < s <= 1 for s in self.coarse_to_fine), "tracking.coarse_to_fine", "scales must be in (0, 1]")
         _check(0 <= self.min_valid_fraction <= 1, "tracking.min_valid_fraction", "must be in [0, 1]")
+        _check(0 <= self.gradient_mask_percentile < 100, "tracking.gradient_mask_percentile", "must be in [0, 100)")
         _check(self.failure_loss_ratio > 1, "tracking.failure_loss_ratio", "must be > 1")
 
 
