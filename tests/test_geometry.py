@@ -321,3 +321,13 @@ def test_rigidity_error_detects_non_rigid_and_non_finite():
         err = rigidity_error(broken)
         assert math.isinf(err[2].item())
         assert torch.isfinite(err[[0, 1, 3, 4]]).all()
+
+
+@pytest.mark.parametrize("angle", [1e-7, 1e-5, 1e-4, 1e-3, 1e-2, 3e-2, 0.3])
+def test_se3_log_of_exp_is_accurate_at_small_angles(angle):
+    """Log(Exp(xi)) = xi to float64 precision across the series/closed-form switch (no cancellation loss)."""
+    direction = torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64)
+    phi = angle * direction / direction.norm()
+    xi = torch.cat([torch.tensor([0.2, -0.1, 0.4], dtype=torch.float64), phi])
+    back = se3_log(se3_exp(xi))
+    assert (back - xi).abs().max() < 1e-13 * max(1.0, float(xi.norm()))
