@@ -2,7 +2,9 @@
 errors into exit codes (0 success, 1 unexpected failure, 2 usage/config/data error, 130 Ctrl-C).
 
     mipslam run CONFIG [--preset P] [--set k=v]... [--out DIR] [--resume RUN_DIR]
-    mipslam eval RUN_DIR | --gt GT.txt --est EST.txt
+    mipslam eval RUN_DIR [--frames all|keyframes|non_keyframes] [--scales 0.25,1] [--modes point,eaa] [--every K]
+                 | --gt GT.txt --est EST.txt
+    mipslam export RUN_DIR --mesh mesh.ply [--voxel-size M]
     mipslam synth --out DIR --format replica|tum --trajectory loop ...
     mipslam config CONFIG [--preset P] [--set k=v]...
 """
@@ -42,6 +44,26 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _float_list(text: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected numbers separated by commas, got {text!r}") from None
+    if not values or not all(v > 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected positive numbers separated by commas, got {text!r}")
+    return values
+
+
+def _mode_list(text: str) -> tuple[str, ...]:
+    from mipslam.render import MODES
+
+    values = tuple(v.strip() for v in text.split(",") if v.strip())
+    unknown = [v for v in values if v not in MODES]
+    if not values or unknown:
+        raise argparse.ArgumentTypeError(f"expected modes from {', '.join(MODES)} separated by commas, got {text!r}")
+    return values
+
+
 def _build_parser() -> argparse.ArgumentParser:
     parser = _ArgumentParser(prog="mipslam", description="RGB-D SLAM with an anti-aliased 3D Gaussian map.")
     parser.add_argument("--version", action="version", version=f"mipslam {__version__}")
@@ -65,6 +87,33 @@ def _build_parser() -> argparse.ArgumentParser:
                     help="pose association (default: timestamp; index for Replica-style runs)")
     ev.add_argument("--max-diff", type=float, default=None, help="timestamp association tolerance in seconds (default 0.02)")
     ev.add_argument("--out", type=Path, help="where to write metrics.json (default: RUN_DIR/metrics.json, or print only)")
+    ev.add_argument("--frames", choices=["all", "keyframes", "non_keyframes"], default=None,
+                    help="render metrics on all frames, keyframes (training views) or non-keyframes (novel views); "
+                         "default: the run's eval.frames")
+    ev.add_argument("--scales", type=_float_list, default=None, metavar="S1,S2,...",
+                    help="render at these scales of the mapping resolution, e.g. 0.125,0.25,0.5,1,2 (default: eval.scales)")
+    ev.add_argument("--modes", type=_mode_list, default=None, metavar="M1,M2,...",
+                    help="footprint modes to compare, e.g. point,mip,ewa,eaa (default: eval.modes, else the run's mode)")
+    ev.add_argument("--every", type=int, default=None, metavar="K",
+                    help="evaluate every K-th frame of the set (default: at most 50 frames, 8 for multi-scale tables)")
+    ev.add_argument("--ground-truth", choices=["auto", "exact", "resampled"], default="auto",
+                    help="ground truth at other scales: exact data_synth renders or area-resampled images (default auto)")
+    ev.add_argument("--lpips", action=argparse.BooleanOptionalAction, default=True,
+                    help="compute LPIPS-alex where its weights are installed (default on)")
+    ev.add_argument("--no-render", action="store_true", help="trajectory metrics only (no rendering)")
+    ev.add_argument("--no-report", action="store_true", help="do not write RUN_DIR/report/")
+
+    ex = sub.add_parser("export", help="export a run's map as a triangle mesh (TSDF fusion of rendered keyframes)")
+    ex.add_argument("run_dir", type=Path, help="run folder written by 'mipslam run'")
+    ex.add_argument("--mesh", type=Path, required=True, help="output mesh file (.ply, .obj, ...)")
+    ex.add_argument("--voxel-size", type=float, default=None,
+                    help="TSDF voxel size in metres (default: 4 pixels at the median rendered depth, in [0.005, 0.1])")
+    ex.add_argument("--sdf-trunc", type=float, default=None, help="TSDF truncation in metres (default 4 voxels)")
+    ex.add_argument("--depth-max", type=float, default=None, help="ignore rendered depth beyond this (metres)")
+    ex.add_argument("--scale", type=float, default=1.0, help="render at this scale of the mapping resolution")
+    ex.add_argument("--mode", default=None, help="footprint mode of the renders (default: the run's mode)")
+    ex.add_argument("--tsdf", choices=["auto", "scalable", "voxel_block_grid"], default="auto",
+                    help="Open3D TSDF: ScalableTSDFVolume, VoxelBlockGrid, or auto (the first, the second if it is empty)")
 
     sy = sub.add_parser("synth", help="generate a synthetic RGB-D sequence with exact ground truth")
     sy.add_argument("--out", type=Path, required=True, help="output folder (must not exist or be empty)")
@@ -127,7 +176,9 @@ def _cmd_eval(args) -> int:
     else:
         from mipslam.evaluation.run_eval import evaluate_run
 
-        metrics = evaluate_run(args.run_dir, alignment=args.alignment, association=args.association, max_diff=args.max_diff)
+        metrics = evaluate_run(args.run_dir, alignment=args.alignment, association=args.association,
+                               max_diff=args.max_diff, render=not args.no_render,
+                               render_options=_render_options(args), report=not args.no_report)
         out = args.out or args.run_dir / "metrics.json"
     if out is not None:
         from mipslam.io.run_folder import write_json_atomic
@@ -137,6 +188,28 @@ def _cmd_eval(args) -> int:
     if out is not None:
         print(f"metrics written to {out}")
     return EXIT_OK
+
+
+def _render_options(args):
+    """Render-evaluation options: the run's eval config, overridden by the flags that were given."""
+    from mipslam.config import config_from_dict
+    from mipslam.evaluation.render_eval import RenderEvalOptions
+
+    import yaml
+
+    config_path = args.run_dir / "config.yaml"
+    try:
+        eval_cfg = config_from_dict(yaml.safe_load(config_path.read_text(encoding="utf-8")) or {}).eval
+    except FileNotFoundError:
+        return None  # evaluate_run reports the missing file
+    return RenderEvalOptions(
+        frames=args.frames or eval_cfg.frames,
+        scales=args.scales or tuple(eval_cfg.scales),
+        modes=args.modes or tuple(eval_cfg.modes),
+        every=args.every,
+        lpips=args.lpips,
+        ground_truth=args.ground_truth,
+    )
 
 
 def _format_metrics(metrics: dict) -> str:
@@ -151,8 +224,24 @@ def _format_metrics(metrics: dict) -> str:
         lines.append(f"RPE {rpe_t['rmse'] * 100:.3f} cm, {rpe_r['rmse']:.3f} deg per step")
     render = metrics.get("render")
     if render:
+        if "unavailable" in render:
+            lines.append(f"render metrics unavailable: {render['unavailable']}")
+        frames = render.get("protocol", {}).get("frames", {})
+        if frames:
+            lines.append(f"render metrics on {len(frames['evaluated'])} of {frames['in_set']} frames "
+                         f"({frames['set']}, every {frames['every']})")
         for row in render.get("rows", []):
-            lines.append(f"{row['mode']:>6} x{row['scale']:<5g} PSNR {row['psnr']:.2f} dB  SSIM {row['ssim']:.4f}")
+            psnr = "inf" if row["psnr"] is None else f"{row['psnr']:.2f}"
+            text = f"{row['mode']:>6} x{row['scale']:<6g} PSNR {psnr:>6} dB  SSIM {row['ssim']:.4f}"
+            if row.get("depth_l1") is not None:
+                text += f"  depth L1 {row['depth_l1'] * 100:.2f} cm"
+            if row.get("lpips") is not None:
+                text += f"  LPIPS {row['lpips']:.4f}"
+            lines.append(text)
+        if isinstance(render.get("lpips"), str) and render["lpips"].startswith("unavailable"):
+            lines.append(f"LPIPS {render['lpips']}")
+    if metrics.get("report"):
+        lines.append(f"report: {Path(metrics.get('run_dir', '.')) / metrics['report']}")
     return "\n".join(lines) if lines else json.dumps(metrics, indent=2)
 
 
@@ -168,7 +257,16 @@ def _cmd_synth(args) -> int:
     return EXIT_OK
 
 
-_COMMANDS = {"run": _cmd_run, "eval": _cmd_eval, "synth": _cmd_synth, "config": _cmd_config}
+def _cmd_export(args) -> int:
+    from mipslam.export import export_mesh
+
+    result = export_mesh(args.run_dir, args.mesh, voxel_size=args.voxel_size, sdf_trunc=args.sdf_trunc,
+                         depth_max=args.depth_max, scale=args.scale, mode=args.mode, method=args.tsdf)
+    print(result.describe())
+    return EXIT_OK
+
+
+_COMMANDS = {"run": _cmd_run, "eval": _cmd_eval, "synth": _cmd_synth, "config": _cmd_config, "export": _cmd_export}
 
 
 def _configure_logging(debug: bool, quiet: bool) -> None:

@@ -1,22 +1,26 @@
-"""Evaluation of a run folder: trajectory metrics (ATE/RPE) with the protocol spelled out.
+"""Evaluation of a run folder: trajectory metrics (ATE/RPE), render metrics and the visual report.
 
 Reads ``traj_est.txt`` and ``traj_gt.txt`` (TUM format) and ``run.json`` (how the dataset stamps
 its frames: Replica and its synthetic twin by frame index, TUM by time), evaluates with the run's
-``eval`` config section (alignment, association tolerance, frame set) unless arguments override it,
-and returns the dict written to ``metrics.json``.
+``eval`` config section (alignment, association tolerance, frame set, scales, modes) unless arguments
+override it, renders the map for the render metrics (:mod:`mipslam.evaluation.render_eval`), writes
+``RUN_DIR/report/`` (:mod:`mipslam.evaluation.report`) and returns the dict written to ``metrics.json``.
 """
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 from mipslam.config import config_from_dict
-from mipslam.errors import EvaluationError
+from mipslam.errors import DatasetError, EvaluationError
 from mipslam.evaluation.trajectory import evaluate_trajectory
 from mipslam.io.run_folder import RunFolder
 from mipslam.io.tum import read_tum_trajectory
 
 import yaml
+
+logger = logging.getLogger(__name__)
 
 
 def _read_json(path: Path) -> dict:
@@ -29,7 +33,15 @@ def _read_json(path: Path) -> dict:
 
 
 def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, association: str | None = None,
-                 max_diff: float | None = None) -> dict:
+                 max_diff: float | None = None, render: bool = True, render_options=None,
+                 report: bool = True) -> dict:
+    """Metrics of a run folder (the dict for ``metrics.json``).
+
+    render: also compute render metrics (``render_options``: a
+    :class:`~mipslam.evaluation.render_eval.RenderEvalOptions`; None = the run's ``eval`` config:
+    frames, scales, modes). When the dataset folder is gone the render section says why it is
+    unavailable and the trajectory metrics are still returned. report: write ``RUN_DIR/report/``.
+    """
     folder = RunFolder(run_dir)
     if not folder.root.is_dir():
         raise EvaluationError(f"{folder.root}: run folder not found")
@@ -62,7 +74,7 @@ def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, associati
         trajectory["protocol"]["association"]["note"] = (
             "timestamps are frame indices (Replica layout): frames match by index")
     flagged = frames["flagged"]
-    return {
+    metrics = {
         "run_dir": str(folder.root),
         "dataset": info["dataset"],
         "frames_processed": info["frames_processed"],
@@ -72,3 +84,22 @@ def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, associati
                               "note": "flagged frames keep their motion-model pose and are included in the ATE"},
         "trajectory": trajectory,
     }
+    evaluation = None
+    if render:
+        from mipslam.evaluation.render_eval import RenderEvalOptions, evaluate_render
+
+        if render_options is None:
+            render_options = RenderEvalOptions(frames=config.eval.frames, scales=tuple(config.eval.scales),
+                                               modes=tuple(config.eval.modes))
+        try:
+            evaluation = evaluate_render(folder.root, render_options)
+            metrics["render"] = evaluation.to_dict()
+        except DatasetError as exc:
+            logger.warning("render metrics unavailable: %s", exc)
+            metrics["render"] = {"unavailable": f"the run's dataset cannot be read ({exc}); render metrics need it"}
+    if report:
+        from mipslam.evaluation.report import write_report
+
+        written = write_report(folder.root, metrics, evaluation)
+        metrics["report"] = str(written.html.relative_to(folder.root))
+    return metrics

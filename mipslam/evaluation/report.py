@@ -1,0 +1,445 @@
+"""The visual report of a run: PNG plots and one ``report.html`` in ``RUN_DIR/report/``.
+
+Written by ``mipslam eval`` (:func:`mipslam.evaluation.run_eval.evaluate_run`) from the run folder's files and the
+metrics it just computed:
+
+* ``trajectory.png``   top view (the two world axes with the largest ground-truth extent) of the ground truth and
+  the estimate after the ATE alignment of ``metrics.json``, keyframes marked, loop closures (``loops.json``) drawn
+  between their keyframes (accepted solid, rejected dotted);
+* ``translation_error.png``  per-frame translational ATE (aligned) over time, keyframes marked, RMSE line;
+* ``psnr_vs_scale.png``  PSNR against rendering scale per footprint mode (the multi-scale table; when only one
+  scale was evaluated, the showcase frame's values at each showcase scale, labelled so);
+* ``timing.png``       per-frame time of each stage (stacked) and the mean per stage;
+* ``gaussians.png``    Gaussian count after each frame, keyframes marked;
+* ``crops.png``        one frame at each scale, the same detailed region cut out, ground truth next to point / mip /
+  eaa (nearest-neighbour display, so aliasing stays visible), with the full-image PSNR of each render;
+* ``report.html``      the headline numbers, the render table and the protocol, linking the images.
+
+Matplotlib draws through its Agg canvas on :class:`matplotlib.figure.Figure` objects (no pyplot, no global
+backend change, nothing interactive); every file is written atomically.
+"""
+from __future__ import annotations
+
+import html
+import io
+import json
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mipslam.errors import EvaluationError
+from mipslam.io.run_folder import RunFolder, write_bytes_atomic, write_text_atomic
+from mipslam.io.tum import read_tum_trajectory
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["ReportFiles", "loop_closures", "top_view_axes", "write_report"]
+
+MODE_COLORS = {"point": "#d62728", "mip": "#1f77b4", "ewa": "#9467bd", "eaa": "#2ca02c", "exact": "#7f7f7f"}
+STAGE_COLORS = ("#4c72b0", "#dd8452", "#55a868", "#c44e52", "#8172b3", "#937860", "#da8bc3", "#8c8c8c")
+DPI = 110
+
+
+@dataclass(frozen=True)
+class ReportFiles:
+    """What :func:`write_report` wrote: the folder, the HTML page and each image (name -> path)."""
+
+    folder: Path
+    html: Path
+    images: dict[str, Path]
+
+
+# ----------------------------------------------------------------------------- inputs
+
+def _read_json_or_none(path: Path) -> Any:
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise EvaluationError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+
+
+_LOOP_KEY_PAIRS = (("keyframe_i", "keyframe_j"), ("i", "j"), ("from", "to"), ("source", "target"),
+                   ("query", "match"), ("kf_i", "kf_j"))
+
+
+def loop_closures(data: Any) -> list[tuple[int, int, bool]]:
+    """(keyframe id, keyframe id, accepted) of each loop closure listed in ``loops.json``.
+
+    Accepts a list of objects, or an object with a ``"loops"`` list; each object names its two keyframes by one
+    of the key pairs ``keyframe_i/keyframe_j``, ``i/j``, ``from/to``, ``source/target``, ``query/match``,
+    ``kf_i/kf_j`` and may say ``"accepted": false``. Entries without a recognisable pair are skipped (logged).
+    """
+    if isinstance(data, dict):
+        data = data.get("loops", data.get("closures", []))
+    if not isinstance(data, list):
+        return []
+    out = []
+    for entry in data:
+        if not isinstance(entry, dict):
+            continue
+        for a, b in _LOOP_KEY_PAIRS:
+            if isinstance(entry.get(a), int) and isinstance(entry.get(b), int):
+                out.append((int(entry[a]), int(entry[b]), bool(entry.get("accepted", True))))
+                break
+        else:
+            logger.debug("loops.json entry without keyframe ids skipped: %s", entry)
+    return out
+
+
+def top_view_axes(positions: np.ndarray) -> tuple[int, int]:  # [N, 3]
+    """The two world axes with the largest extent of ``positions`` (the third, dropped, is taken as 'up')."""
+    extent = np.ptp(positions, axis=0) if len(positions) else np.ones(3)
+    first, second = sorted(np.argsort(extent)[-2:].tolist())
+    return int(first), int(second)
+
+
+def _align(points: np.ndarray, alignment: dict | None) -> np.ndarray:  # [N, 3] -> [N, 3]
+    if not alignment:
+        return points
+    rotation = np.asarray(alignment["rotation"], dtype=np.float64)
+    translation = np.asarray(alignment["translation_m"], dtype=np.float64)
+    return (float(alignment.get("scale", 1.0)) * points) @ rotation.T + translation
+
+
+def _figure(width: float, height: float):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(width, height), dpi=DPI, layout="constrained")
+    FigureCanvasAgg(figure)
+    return figure
+
+
+def _save(figure, path: Path) -> Path:
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=DPI)
+    return write_bytes_atomic(path, buffer.getvalue(), error_type=EvaluationError)
+
+
+# ----------------------------------------------------------------------------- plots
+
+_AXIS_NAMES = "xyz"
+
+
+def plot_trajectory(path: Path, gt: np.ndarray, est: np.ndarray, keyframes: np.ndarray,
+                    loops: list[tuple[int, int, bool]], ate_rmse: float | None) -> Path:
+    """Top view.  gt [N, 3], est [M, 3] (aligned), keyframes [K, 3] (aligned) positions in metres."""
+    a, b = top_view_axes(gt if len(gt) else est)
+    figure = _figure(6.4, 5.6)
+    ax = figure.add_subplot()
+    if len(gt):
+        ax.plot(gt[:, a], gt[:, b], "-", color="#444444", lw=2.0, label="ground truth")
+    ax.plot(est[:, a], est[:, b], "-", color="#1f77b4", lw=1.4, label="estimate (aligned)")
+    if len(est):
+        ax.plot(est[0, a], est[0, b], "o", color="#1f77b4", ms=8, mfc="white", label="start")
+    if len(keyframes):
+        ax.plot(keyframes[:, a], keyframes[:, b], "^", color="#ff7f0e", ms=7, mec="black", mew=0.5,
+                label=f"keyframes ({len(keyframes)})")
+    drawn = {True: False, False: False}
+    for i, j, accepted in loops:
+        if 0 <= i < len(keyframes) and 0 <= j < len(keyframes):
+            label = None if drawn[accepted] else ("loop closure" if accepted else "rejected loop")
+            drawn[accepted] = True
+            ax.plot(keyframes[[i, j], a], keyframes[[i, j], b], "-" if accepted else ":", color="#d62728", lw=1.6,
+                    label=label)
+    ax.set_xlabel(f"world {_AXIS_NAMES[a]} [m]")
+    ax.set_ylabel(f"world {_AXIS_NAMES[b]} [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    title = "Trajectory, top view"
+    if ate_rmse is not None:
+        title += f" (ATE RMSE {ate_rmse * 100:.2f} cm)"
+    ax.set_title(title)
+    ax.legend(loc="best", fontsize=9)
+    return _save(figure, path)
+
+
+def plot_translation_error(path: Path, times: np.ndarray, errors: np.ndarray, keyframe_times: np.ndarray,
+                           time_label: str) -> Path:
+    """times [M], errors [M] metres, keyframe_times [K]."""
+    figure = _figure(7.5, 3.6)
+    ax = figure.add_subplot()
+    ax.plot(times, errors * 100, "-", color="#1f77b4", lw=1.5, label="translation error")
+    on_keyframes = np.isin(times, keyframe_times)
+    if on_keyframes.any():
+        ax.plot(times[on_keyframes], errors[on_keyframes] * 100, "^", color="#ff7f0e", ms=6, mec="black", mew=0.5,
+                label="keyframes")
+    if len(errors):
+        rmse = float(np.sqrt(np.mean(errors**2)))
+        ax.axhline(rmse * 100, color="#444444", ls="--", lw=1, label=f"RMSE {rmse * 100:.2f} cm")
+    ax.set_xlabel(time_label)
+    ax.set_ylabel("error after alignment [cm]")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.set_title("Absolute translation error over time")
+    ax.legend(loc="best", fontsize=9)
+    return _save(figure, path)
+
+
+def plot_psnr_vs_scale(path: Path, points: dict[str, list[tuple[float, float]]], subtitle: str) -> Path:
+    """points: mode -> [(scale, PSNR dB)]."""
+    figure = _figure(6.4, 4.4)
+    ax = figure.add_subplot()
+    scales = sorted({s for values in points.values() for s, _ in values})
+    for mode, values in points.items():
+        values = sorted(values)
+        ax.plot([s for s, _ in values], [p for _, p in values], "o-", color=MODE_COLORS.get(mode), lw=1.8, ms=6,
+                label=mode)
+    ax.set_xscale("log", base=2)
+    ax.set_xticks(scales)
+    ax.set_xticklabels([_scale_label(s) for s in scales])
+    ax.set_xlabel("rendering scale (x mapping resolution)")
+    ax.set_ylabel("PSNR [dB]")
+    ax.grid(alpha=0.3, which="both")
+    ax.set_title(f"PSNR against scale\n{subtitle}", fontsize=11)
+    ax.legend(title="footprint", fontsize=9)
+    return _save(figure, path)
+
+
+def _scale_label(scale: float) -> str:
+    if scale < 1 and abs(1 / scale - round(1 / scale)) < 1e-9:
+        return f"1/{round(1 / scale)}"
+    return f"{scale:g}"
+
+
+def plot_timing(path: Path, timings: dict) -> Path:
+    stages = {name: np.asarray(values.get("per_frame_s", []), dtype=np.float64)
+              for name, values in timings.get("stages", {}).items()}
+    figure = _figure(9.0, 3.8)
+    left, right = figure.subplots(1, 2, width_ratios=(2.2, 1))
+    frames = max((len(v) for v in stages.values()), default=0)
+    bottom = np.zeros(frames)
+    for k, (name, values) in enumerate(stages.items()):
+        padded = np.zeros(frames)
+        padded[:len(values)] = values
+        left.bar(np.arange(frames), padded * 1000, bottom=bottom, width=0.85, color=STAGE_COLORS[k % len(STAGE_COLORS)],
+                 label=name)
+        bottom += padded * 1000
+    left.set_xlabel("frame")
+    left.set_ylabel("time [ms]")
+    left.set_title("Time per frame by stage")
+    left.grid(alpha=0.3, axis="y")
+    left.legend(fontsize=8)
+    names = list(stages)
+    means = [float(values.mean() * 1000) if len(values) else 0.0 for values in stages.values()]
+    totals = [float(values.sum()) for values in stages.values()]
+    right.barh(names, means, color=[STAGE_COLORS[k % len(STAGE_COLORS)] for k in range(len(names))])
+    for y, (mean, total) in enumerate(zip(means, totals)):
+        right.text(mean, y, f" {mean:.0f} ms ({total:.0f} s)", va="center", fontsize=8)
+    right.set_xlim(0, max(means + [1.0]) * 1.6)
+    right.invert_yaxis()
+    right.set_xlabel("mean per frame [ms]")
+    fps = timings.get("frames_per_second")
+    right.set_title(f"Mean per stage ({fps:.2f} frames/s)" if fps else "Mean per stage")
+    return _save(figure, path)
+
+
+def plot_gaussians(path: Path, frame_indices: np.ndarray, counts: np.ndarray, keyframe_mask: np.ndarray) -> Path:
+    """frame_indices [N], counts [N], keyframe_mask [N] bool."""
+    figure = _figure(7.5, 3.4)
+    ax = figure.add_subplot()
+    ax.plot(frame_indices, counts, "-", color="#2ca02c", lw=1.8, label="Gaussians")
+    if keyframe_mask.any():
+        ax.plot(frame_indices[keyframe_mask], counts[keyframe_mask], "^", color="#ff7f0e", ms=6, mec="black",
+                mew=0.5, label="keyframes")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("Gaussians in the map")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.set_title(f"Map size over time (final: {int(counts[-1]) if len(counts) else 0})")
+    ax.legend(loc="best", fontsize=9)
+    return _save(figure, path)
+
+
+def _crop(image: np.ndarray, box: tuple[float, float, float, float]) -> np.ndarray:  # [h, w, 3]
+    height, width = image.shape[:2]
+    x0, x1 = int(math.floor(box[0] * width)), max(int(math.floor(box[0] * width)) + 1, int(math.ceil(box[2] * width)))
+    y0, y1 = int(math.floor(box[1] * height)), max(int(math.floor(box[1] * height)) + 1, int(math.ceil(box[3] * height)))
+    return image[y0:min(y1, height), x0:min(x1, width)]
+
+
+def plot_crops(path: Path, showcase) -> Path:
+    """Crop grid of a :class:`~mipslam.evaluation.render_eval.Showcase` (rows: scales; columns: GT, modes)."""
+    from mipslam.evaluation.image_metrics import psnr
+
+    columns = ("ground truth", *showcase.modes)
+    rows = showcase.scales
+    figure = _figure(2.3 * len(columns) + 0.6, 2.0 * len(rows) + 0.6)
+    axes = figure.subplots(len(rows), len(columns), squeeze=False)
+    for r, scale in enumerate(rows):
+        truth = showcase.ground_truth[scale]
+        for c, name in enumerate(columns):
+            ax = axes[r][c]
+            image = truth if c == 0 else showcase.renders[(scale, name)]
+            ax.imshow(_crop(image.numpy(), showcase.crop_box), interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(name, fontsize=11, color=MODE_COLORS.get(name, "black"), fontweight="bold")
+            if c == 0:
+                ax.set_ylabel(f"x{_scale_label(scale)}\n{truth.shape[1]}x{truth.shape[0]} px", fontsize=10)
+            else:
+                value = float(psnr(image, truth))
+                ax.text(0.02, 0.03, f"{value:.1f} dB", transform=ax.transAxes, fontsize=8, color="white",
+                        bbox=dict(facecolor="black", alpha=0.6, pad=1.5, lw=0))
+    box = showcase.crop_box
+    figure.suptitle(f"Frame {showcase.frame_index}: region x {box[0]:.2f}-{box[2]:.2f}, y {box[1]:.2f}-{box[3]:.2f} "
+                    "of the image at each scale (PSNR of the whole image)", fontsize=10)
+    return _save(figure, path)
+
+
+# ----------------------------------------------------------------------------- report
+
+def _psnr_points(render: dict | None, showcase) -> tuple[dict[str, list[tuple[float, float]]], str]:
+    rows = (render or {}).get("rows", [])
+    scales = {row["scale"] for row in rows}
+    if len(scales) > 1:
+        points: dict[str, list[tuple[float, float]]] = {}
+        for row in rows:
+            if row["psnr"] is not None:
+                points.setdefault(row["mode"], []).append((row["scale"], row["psnr"]))
+        frames = render["protocol"]["frames"]
+        return points, f"mean over {len(frames['evaluated'])} frames ({frames['set']})"
+    if showcase is not None:
+        from mipslam.evaluation.image_metrics import psnr
+
+        points = {mode: [(s, float(psnr(showcase.renders[(s, mode)], showcase.ground_truth[s])))
+                         for s in showcase.scales] for mode in showcase.modes}
+        return points, f"frame {showcase.frame_index} only (run 'mipslam eval --scales' for the mean over frames)"
+    return {}, ""
+
+
+def write_report(run_dir: str | Path, metrics: dict, render_evaluation=None) -> ReportFiles:
+    """Write the plots and ``report.html`` into ``RUN_DIR/report/`` (see the module docstring).
+
+    ``metrics``: the dict of :func:`~mipslam.evaluation.run_eval.evaluate_run`; ``render_evaluation``: its
+    :class:`~mipslam.evaluation.render_eval.RenderEvaluation` (for the crop grid), or None.
+    """
+    run = RunFolder(run_dir)
+    folder = run.report
+    folder.mkdir(parents=True, exist_ok=True)
+    images: dict[str, Path] = {}
+    trajectory = metrics.get("trajectory", {})
+    protocol = trajectory.get("protocol", {})
+    alignment = protocol.get("alignment")
+    frames_info = _read_json_or_none(run.root / "frames.json") or {"frames": []}
+    records = frames_info.get("frames", [])
+    timestamp_kind = metrics.get("dataset", {}).get("timestamp_kind", "time")
+    time_label = "frame" if timestamp_kind == "index" else "time [s]"
+
+    est = read_tum_trajectory(run.traj_est)
+    gt = read_tum_trajectory(run.traj_gt, allow_duplicate_timestamps=True) if run.traj_gt.is_file() else None
+    keyframes = read_tum_trajectory(run.keyframes) if run.keyframes.is_file() else None
+    est_aligned = _align(est.positions, alignment)
+    keyframes_aligned = _align(keyframes.positions, alignment) if keyframes is not None else np.zeros((0, 3))
+    loops = loop_closures(_read_json_or_none(run.loops))
+    ate = trajectory.get("ate", {}).get("rmse")
+    images["trajectory"] = plot_trajectory(folder / "trajectory.png", gt.positions if gt is not None else np.zeros((0, 3)),
+                                           est_aligned, keyframes_aligned, loops, ate)
+
+    matched = protocol.get("frames", {})
+    if gt is not None and matched.get("matched_est_indices"):
+        est_idx = np.asarray(matched["matched_est_indices"], dtype=np.int64)
+        gt_idx = np.asarray(matched["matched_gt_indices"], dtype=np.int64)
+        errors = np.linalg.norm(gt.positions[gt_idx] - est_aligned[est_idx], axis=1)
+        keyframe_times = keyframes.timestamps if keyframes is not None else np.zeros(0)
+        images["translation_error"] = plot_translation_error(folder / "translation_error.png", est.timestamps[est_idx],
+                                                             errors, keyframe_times, time_label)
+
+    render = metrics.get("render") if isinstance(metrics.get("render"), dict) else None
+    showcase = getattr(render_evaluation, "showcase", None)
+    points, subtitle = _psnr_points(render, showcase)
+    if points:
+        images["psnr_vs_scale"] = plot_psnr_vs_scale(folder / "psnr_vs_scale.png", points, subtitle)
+    timings = _read_json_or_none(run.timings)
+    if timings and timings.get("stages"):
+        images["timing"] = plot_timing(folder / "timing.png", timings)
+    if records:
+        counts = np.asarray([r.get("gaussians", 0) for r in records], dtype=np.int64)
+        indices = np.asarray([r["index"] for r in records], dtype=np.int64)
+        is_keyframe = np.asarray([r.get("keyframe_id", -1) >= 0 for r in records], dtype=bool)
+        images["gaussians"] = plot_gaussians(folder / "gaussians.png", indices, counts, is_keyframe)
+    if showcase is not None:
+        images["crops"] = plot_crops(folder / "crops.png", showcase)
+
+    page = folder / "report.html"
+    write_text_atomic(page, _html(metrics, timings, images, loops, render), error_type=EvaluationError)
+    logger.info("report written to %s", page)
+    return ReportFiles(folder, page, images)
+
+
+def _fmt(value, spec: str, unit: str = "", none: str = "-") -> str:
+    return none if value is None else f"{value:{spec}}{unit}"
+
+
+def _html(metrics: dict, timings: dict | None, images: dict[str, Path], loops, render: dict | None) -> str:
+    esc = html.escape
+    trajectory = metrics.get("trajectory", {})
+    ate = trajectory.get("ate", {})
+    rpe_t, rpe_r = trajectory.get("rpe_translation", {}), trajectory.get("rpe_rotation", {})
+    dataset = metrics.get("dataset", {})
+    k = dataset.get("intrinsics", {})
+    fps = (timings or {}).get("frames_per_second")
+    headline = [
+        ("sequence", f"{dataset.get('name', '?')} ({dataset.get('kind', '?')}), {metrics.get('frames_processed')} frames "
+                     f"at {k.get('width')}x{k.get('height')}"),
+        ("ATE RMSE", f"{_fmt(ate.get('rmse') and ate['rmse'] * 100, '.2f', ' cm')} over {ate.get('count', 0)} poses "
+                     f"({trajectory.get('protocol', {}).get('alignment', {}).get('method', '?')} alignment)"),
+        ("RPE per frame", f"{_fmt(rpe_t.get('rmse') and rpe_t['rmse'] * 100, '.2f', ' cm')}, "
+                          f"{_fmt(rpe_r.get('rmse'), '.3f', ' deg')}"),
+        ("keyframes / Gaussians", f"{metrics.get('keyframes')} / {metrics.get('gaussians')}"),
+        ("tracking failures", str(metrics.get("tracking_failures", {}).get("count", 0))),
+        ("loop closures", f"{sum(a for _, _, a in loops)} accepted, {sum(not a for _, _, a in loops)} rejected"
+                          if loops else "none listed (no loops.json)"),
+        ("speed", f"{fps:.2f} frames/s ({timings.get('total_s', 0):.0f} s in total)" if fps else "-"),
+    ]
+    render_rows = (render or {}).get("rows", [])
+    if render_rows:
+        main = min(render_rows, key=lambda r: (abs(math.log(r["scale"])), r["mode"] != render_rows[0]["mode"]))
+        headline.append((f"render x{main['scale']:g} ({main['mode']})",
+                         f"PSNR {_fmt(main['psnr'], '.2f', ' dB')}, SSIM {main['ssim']:.4f}, "
+                         f"LPIPS {_fmt(main.get('lpips'), '.4f')}, depth L1 {_fmt(main.get('depth_l1') and main['depth_l1'] * 100, '.2f', ' cm')}"))
+    elif render and "unavailable" in render:
+        headline.append(("render metrics", f"unavailable: {render['unavailable']}"))
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>mipslam run report</title><style>",
+        "body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}"
+        "table{border-collapse:collapse;margin:0.5em 0}td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}"
+        "th{background:#f0f0f0}td.l{text-align:left}img{max-width:100%;border:1px solid #ddd;margin:0.4em 0}"
+        "pre{background:#f7f7f7;padding:0.6em;overflow-x:auto;font-size:85%}",
+        "</style></head><body>",
+        f"<h1>mipslam run report</h1><p>{esc(str(metrics.get('run_dir', '')))}</p>",
+        "<h2>Headline</h2><table>",
+        *[f"<tr><th style='text-align:left'>{esc(name)}</th><td class='l'>{esc(value)}</td></tr>" for name, value in headline],
+        "</table>",
+    ]
+    if render_rows:
+        parts.append("<h2>Rendering (mean over the evaluated frames)</h2><table><tr><th>scale</th><th>size</th>"
+                     "<th>mode</th><th>PSNR [dB]</th><th>SSIM</th><th>LPIPS</th><th>depth L1 [cm]</th><th>frames</th></tr>")
+        for row in render_rows:
+            parts.append(f"<tr><td>{row['scale']:g}</td><td>{row['width']}x{row['height']}</td><td class='l'>"
+                         f"{esc(row['mode'])}</td><td>{_fmt(row['psnr'], '.2f')}</td><td>{row['ssim']:.4f}</td>"
+                         f"<td>{_fmt(row.get('lpips'), '.4f')}</td>"
+                         f"<td>{_fmt(row.get('depth_l1') and row['depth_l1'] * 100, '.2f')}</td><td>{row['frames']}</td></tr>")
+        parts.append("</table>")
+    captions = {
+        "trajectory": "Trajectory (top view)", "translation_error": "Translation error over time",
+        "psnr_vs_scale": "PSNR against rendering scale", "crops": "One frame at each scale: ground truth and footprints",
+        "timing": "Timing per stage", "gaussians": "Gaussian count over time",
+    }
+    for name, caption in captions.items():
+        if name in images:
+            parts.append(f"<h2>{esc(caption)}</h2><img src='{esc(images[name].name)}' alt='{esc(caption)}'>")
+    if render and "protocol" in render:
+        parts.append("<h2>Render protocol</h2><pre>" + esc(json.dumps(render["protocol"], indent=1)) + "</pre>")
+    if trajectory.get("protocol"):
+        shown = {key: value for key, value in trajectory["protocol"].items() if key != "frames"}
+        parts.append("<h2>Trajectory protocol</h2><pre>" + esc(json.dumps(shown, indent=1)) + "</pre>")
+    parts.append("</body></html>\n")
+    return "\n".join(parts)
