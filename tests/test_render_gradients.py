@@ -9,7 +9,7 @@ import torch
 from mipslam.geometry import se3_exp
 from mipslam.render import rasterize as rasterize_any_backend
 
-WIDTH, HEIGHT = 6, 5
+WIDTH, HEIGHT = 4, 3
 
 # These tests check the pure-PyTorch reference backend (the compiled one has its own tests).
 rasterize = functools.partial(rasterize_any_backend, backend="torch")
@@ -23,7 +23,7 @@ def tiny_scene():
     opacities = torch.tensor([0.7, 0.55, 0.8], dtype=dtype)
     colors = torch.tensor([[0.9, 0.2, 0.1], [0.1, 0.8, 0.3], [0.4, 0.4, 0.9]], dtype=dtype)
     viewmat = se3_exp(torch.tensor([0.01, -0.02, 0.03, 0.02, -0.01, 0.015], dtype=dtype))
-    K = torch.tensor([[12.0, 0, 2.5], [0, 11.0, 2.0], [0, 0, 1]], dtype=dtype)
+    K = torch.tensor([[8.0, 0, 1.5], [0, 7.5, 1.0], [0, 0, 1]], dtype=dtype)
     return means, quats, scales, opacities, colors, viewmat, K
 
 
@@ -33,7 +33,7 @@ def test_gradcheck_every_mode_including_the_pose(mode):
     options = {"exact_order": 4} if mode == "exact" else {}
 
     def render(m, q, s, o, c, v):
-        out = rasterize(m, q, s, o, c, v, K, WIDTH, HEIGHT, mode=mode, tile_size=4, **options)
+        out = rasterize(m, q, s, o, c, v, K, WIDTH, HEIGHT, mode=mode, tile_size=2, **options)
         return torch.cat([out.color.reshape(-1), out.depth.reshape(-1), out.alpha.reshape(-1)])
 
     inputs = tuple(t.clone().requires_grad_() for t in (means, quats, scales, opacities, colors, viewmat))

@@ -96,7 +96,7 @@ def brute_force(means, quats, scales, opacities, colors, viewmat, K, width, heig
     v, u = torch.meshgrid(torch.arange(height, dtype=means.dtype), torch.arange(width, dtype=means.dtype),
                           indexing="ij")
     a = fp.pixel_opacity(mode, u.reshape(-1, 1), v.reshape(-1, 1), proj.means2d[ids, 0], proj.means2d[ids, 1],
-                         xx, xy, yy, det, o, nodes, k_sigma=k_sigma, row_capacity=d.eaa_max_nodes)
+                         xx, xy, yy, det, o, nodes, k_sigma=k_sigma, row_capacity=d.eaa_max_nodes, exact_order=8)
     color, depth, alpha = composite(a, proj.colors[ids].unsqueeze(0), proj.depths[ids])
     return color.view(height, width, -1), depth.view(height, width), alpha.view(height, width)
 
@@ -106,7 +106,7 @@ def test_tiled_rasterizer_equals_brute_force(mode):
     scene = random_scene(60, seed=2)
     viewmat, K = camera(23, 17)
     # Small tiles and a tiny budget force many batches (and checkpointing).
-    out = rasterize(*scene, viewmat, K, 23, 17, mode=mode, tile_size=5, pair_budget=3000, eaa_eta=0.0)
+    out = rasterize(*scene, viewmat, K, 23, 17, mode=mode, tile_size=5, pair_budget=3000, exact_order=8)
     color, depth, alpha = brute_force(*scene, viewmat, K, 23, 17, mode)
     assert out.alpha.max() > 0.5
     assert torch.allclose(out.color, color, atol=1e-5)

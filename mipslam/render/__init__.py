@@ -49,7 +49,7 @@ class RenderOptions:
     exact_order       Gauss-Legendre order per axis of ``exact`` mode
     tile_size         tile edge in pixels
     pair_budget       max padded (tile pixel x Gaussian x node) evaluations per batch (memory bound)
-    checkpoint        recompute each batch in backward instead of storing it (None: when several batches)
+    checkpoint        recompute each batch in backward instead of storing it (None: when the work is large)
     """
 
     near_plane: float = 0.01
@@ -65,8 +65,8 @@ class RenderOptions:
     pose_only: bool = False
     normalized_depth: bool = False
     exact_order: int = 20
-    tile_size: int = 16
-    pair_budget: int = 1 << 22
+    tile_size: int = 8
+    pair_budget: int = 1 << 20
     checkpoint: bool | None = None
 
     def __post_init__(self):

@@ -8,6 +8,8 @@ contributes iff ``T_i (1 - alpha_i) >= 1e-4`` (the first one that fails stops th
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
 ALPHA_MAX = 0.99
@@ -30,7 +32,7 @@ def blend_weights(alpha: torch.Tensor) -> torch.Tensor:
     log_keep = torch.log1p(-alpha)  # [..., L] <= 0
     log_after = torch.cumsum(log_keep, dim=-1)  # log T_{i+1}
     log_before = log_after - log_keep  # log T_i
-    contributes = log_after >= torch.log(torch.tensor(TRANSMITTANCE_MIN, dtype=alpha.dtype))
+    contributes = log_after >= math.log(TRANSMITTANCE_MIN)
     # T is non-increasing, so "T_{i+1} >= 1e-4" fails from the first failing Gaussian onwards.
     return torch.where(contributes, alpha * torch.exp(log_before), torch.zeros_like(alpha))
 

@@ -242,7 +242,11 @@ def exact_pixel_opacity(pix_x, pix_y, mean_x, mean_y, cov_xx, cov_xy, cov_yy, co
     half_i = (0.5 * (hi_i - lo_i)).unsqueeze(-1)  # [..., Q, 1]
     x = (0.5 * (hi_i + lo_i)).unsqueeze(-1) + half_i * gl_x  # [..., Q, Q]
     inner = (gl_w * half_i * torch.exp(-0.5 * ((x - ridge.unsqueeze(-1)) / s.unsqueeze(-1)) ** 2)).sum(-1)
-    return opacity * (outer * inner).sum(-1)
+    value = opacity * (outer * inner).sum(-1)
+    # The same support box as the tiling (k sigma + half a pixel per axis); beyond it G < exp(-k^2 / 2).
+    var_i = torch.where(cov_yy >= cov_xx, cov_xx, cov_yy)
+    inside = (p_i - mu_i).abs() <= k_sigma * torch.sqrt(var_i) + 0.5
+    return torch.where(inside, value, torch.zeros_like(value))
 
 
 def pixel_opacity(mode: str, pix_x, pix_y, mean_x, mean_y, cov_xx, cov_xy, cov_yy, cov_det, opacity,
