@@ -211,8 +211,10 @@ def export_mesh(run_dir: str | Path, mesh_path: str | Path, *, voxel_size: float
                              method=method)
     vertices, triangles = len(mesh.vertices), len(mesh.triangles)
     if vertices == 0:
+        hint = ("Open3D's ScalableTSDFVolume integrated nothing; use --tsdf voxel_block_grid (or auto)"
+                if method == "scalable" else "try a larger --voxel-size")
         raise EvaluationError(f"{folder.root}: TSDF fusion produced an empty mesh (voxel {voxel_size} m, truncation "
-                              f"{sdf_trunc} m); try a larger --voxel-size")
+                              f"{sdf_trunc} m); {hint}")
     _write_mesh_atomic(mesh, mesh_path)
     logger.info("mesh: %d vertices, %d triangles -> %s", vertices, triangles, mesh_path)
     return MeshExportResult(mesh_path, vertices, triangles, len(views), float(voxel_size), float(sdf_trunc),
