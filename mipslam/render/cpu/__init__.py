@@ -20,7 +20,9 @@ when this CPU has both (checked at run time before compiling); otherwise the x86
 used, so the cached binary never needs more than the CPU that built it. If the build fails (no compiler,
 no ninja, ...) one warning is logged and :func:`is_available` is False: ``backend="auto"`` then uses the
 torch backend and ``backend="cpu"`` raises :class:`~mipslam.errors.BackendUnavailableError` with the
-reason (:func:`unavailable_reason`). ``MIPSLAM_CPU_BACKEND=0`` disables the backend.
+reason (:func:`unavailable_reason`). ``MIPSLAM_CPU_BACKEND=0`` disables the backend;
+``MIPSLAM_CPU_CFLAGS`` appends compiler flags (e.g. ``-march=native`` for a build that will only ever
+run on this machine).
 """
 from __future__ import annotations
 
@@ -86,6 +88,8 @@ def build_flags() -> tuple[list[str], list[str]]:
     cflags = ["-O3", "-std=c++17", "-fopenmp", "-fno-math-errno", "-fno-trapping-math"]
     if _cpu_has_avx2_fma():
         cflags += ["-mavx2", "-mfma"]
+    # Extra flags for experiments or a machine-specific build (part of the cache key).
+    cflags += os.environ.get("MIPSLAM_CPU_CFLAGS", "").split()
     return cflags, ["-fopenmp"]
 
 
@@ -222,19 +226,19 @@ class RasterizeProjected(torch.autograd.Function):
     def forward(ctx, means2d, cov, opacity, depth, colors, node_counts, mode_id: int, width: int, height: int,
                 k_sigma: float, eta: float, tau: float, gl_nodes, gl_weights, threads: int):
         ext = load_extension()
-        (color, depth_img, alpha_img, tile_offsets, isect_gauss, gauss_offsets, isect_pos, last,
+        (color, depth_img, alpha_img, order, tile_offsets, isect_ids, pair_offsets, isect_pos, last,
          stats) = ext.rasterize_forward(means2d, cov, opacity, depth, colors, node_counts, mode_id, width, height,
                                         k_sigma, eta, tau, gl_nodes, gl_weights, threads)
         ctx.settings = (mode_id, width, height, k_sigma, eta, tau, threads)
-        ctx.save_for_backward(means2d, cov, opacity, depth, colors, node_counts, gl_nodes, gl_weights, tile_offsets,
-                              isect_gauss, gauss_offsets, isect_pos, last, color, depth_img, alpha_img)
+        ctx.save_for_backward(means2d, cov, opacity, depth, colors, node_counts, gl_nodes, gl_weights, order,
+                              tile_offsets, isect_ids, pair_offsets, isect_pos, last, color, depth_img, alpha_img)
         ctx.mark_non_differentiable(stats)
         return color, depth_img, alpha_img, stats
 
     @staticmethod
     def backward(ctx, grad_color, grad_depth, grad_alpha, _grad_stats):
-        (means2d, cov, opacity, depth, colors, node_counts, gl_nodes, gl_weights, tile_offsets, isect_gauss,
-         gauss_offsets, isect_pos, last, color, depth_img, alpha_img) = ctx.saved_tensors
+        (means2d, cov, opacity, depth, colors, node_counts, gl_nodes, gl_weights, order, tile_offsets, isect_ids,
+         pair_offsets, isect_pos, last, color, depth_img, alpha_img) = ctx.saved_tensors
         mode_id, width, height, k_sigma, eta, tau, threads = ctx.settings
 
         def dense(grad, like):
@@ -243,7 +247,7 @@ class RasterizeProjected(torch.autograd.Function):
         need = ctx.needs_input_grad
         g_means2d, g_cov, g_opacity, g_depth, g_colors = load_extension().rasterize_backward(
             means2d, cov, opacity, depth, colors, node_counts, mode_id, width, height, k_sigma, eta, tau, gl_nodes,
-            gl_weights, tile_offsets, isect_gauss, gauss_offsets, isect_pos, last, color, depth_img, alpha_img,
+            gl_weights, order, tile_offsets, isect_ids, pair_offsets, isect_pos, last, color, depth_img, alpha_img,
             dense(grad_color, color), dense(grad_depth, depth_img), dense(grad_alpha, alpha_img), bool(need[4]),
             bool(need[2]), threads)
         return (g_means2d if need[0] else None, g_cov if need[1] else None, g_opacity if need[2] else None,

@@ -30,16 +30,19 @@ constexpr int MAX_ROWS = 64;  // cap of EAA nodes and of the exact-mode Gauss-Le
 
 enum Mode : int { MODE_CENTRE = 0, MODE_EAA = 1, MODE_EXACT = 2 };
 
-// One projected Gaussian, prepared once per call (setup_gaussian in raster_ext.cpp).
-struct Gauss {
+// One projected Gaussian, prepared once per call (setup_gaussian in raster_ext.cpp). The first cache
+// line holds everything the centre-sample modes touch per pixel row.
+struct alignas(64) Gauss {
     float mx, my;          // centre, px
-    float xx, xy, yy, det;  // sampling covariance, px^2, and its determinant, px^4
-    float ca, cb, cc;      // conic: maha = ca dx^2 + 2 cb dx dy + cc dy^2 (= d^T Sigma^-1 d)
+    float qa, qb, qc;      // -(ca, cb, cc) log2(e) / 2 (see centre_eval)
     float opacity, depth;
+    float ca, cb, cc;      // conic: maha = ca dx^2 + 2 cb dx dy + cc dy^2 (= d^T Sigma^-1 d)
+    int32_t px0, px1, py0, py1;  // inclusive pixel box (clamped to the image); px0 > px1 if empty
+    // --- second cache line: covariance and row frame (EAA / exact) ---
+    float xx, xy, yy, det;  // sampling covariance, px^2, and its determinant, px^4
     int32_t nodes;         // EAA node count (1 = centre sample), exact: unused
     int32_t outer_y;       // row frame: 1 if the outer axis is y (yy >= xx)
     float mu_o, mu_i, var_o, sigma_o, inv_sigma_o, slope, s, inv_s, inner_lim;
-    int32_t px0, px1, py0, py1;  // inclusive pixel box (clamped to the image); px0 > px1 if empty
 };
 
 struct Settings {
@@ -66,13 +69,16 @@ struct CentrePixel {
     vf dx, G, a;
 };
 
+// -maha/2 log2(e) = qa dx^2 + 2 qb dx dy + qc dy^2 with (qa, qb, qc) = -(ca, cb, cc) log2(e) / 2, so
+// G = 2^(that). Inside lanes have -maha/2 >= -k^2/2; the clamp at -80 keeps the other lanes off the slow
+// subnormal path (they are masked).
 static inline __attribute__((always_inline)) vf centre_eval(const Gauss& g, float k2, vf px, float py,
                                                             CentrePixel* st) {
     const vf dx = px - splat(g.mx);
     const float dy = py - g.my;
-    const vf maha = (splat(g.ca) * dx + splat(2.f * g.cb * dy)) * dx + splat(g.cc * dy * dy);
-    const vf G = vexp(splat(-0.5f) * maha);
-    const vf a = select(maha <= splat(k2), splat(g.opacity) * G, splat(0.f));
+    const vf t = (splat(g.qa) * dx + splat(2.f * g.qb * dy)) * dx + splat(g.qc * dy * dy);
+    const vf G = vexp2_unclamped(vmax(t, splat(-80.f)));
+    const vf a = keep(t >= splat(-0.5f * LOG2E * k2), splat(g.opacity) * G);
     st->dx = dx;
     st->G = G;
     st->a = a;
@@ -90,7 +96,7 @@ static inline __attribute__((always_inline)) void centre_grad(const Gauss& g, fl
     acc->g2 += gdx * st.dx;
     acc->g3 += gdx * dy;
     acc->g4 += gm * dy * dy;
-    if (GRAD_OPACITY) acc->go += ga * select(st.a > splat(0.f), st.G, splat(0.f));
+    if (GRAD_OPACITY) acc->go += ga * keep(st.a > splat(0.f), st.G);
 }
 
 // grads[0..6] = d/d(mx, my, xx, xy, yy, det, opacity) from the summed moments.

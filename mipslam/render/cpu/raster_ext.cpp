@@ -15,6 +15,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <limits>
 #include <vector>
 
@@ -31,13 +32,14 @@ constexpr int TILE = 16;
 constexpr int BLOCKS_PER_ROW = TILE / LANES;
 constexpr int NV = TILE * BLOCKS_PER_ROW;  // vectors per tile
 
+// The drawn Gaussians in depth order (index m), and the (tile, Gaussian) pairs.
 struct Scene {
     int width, height, tiles_x, tiles_y, channels;
     Settings settings;
-    const Gauss* gauss;
-    const float* colors;          // [N, C]
+    const Gauss* gauss;           // [M] depth-sorted (stable), so a tile's list reads them in increasing order
+    const float* colors;          // [M, C] same order
     const int32_t* tile_offsets;  // [tiles + 1]
-    const int32_t* isect_gauss;   // [P] Gaussian of each (tile, Gaussian) pair, tile-major, depth order
+    const int32_t* isect_ids;     // [P] sorted index m of each pair, tile-major, front to back within a tile
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -74,6 +76,9 @@ static Gauss setup_gaussian(int mode, float k, const float* mean, const float* c
     g.ca = g.yy / g.det;
     g.cb = -g.xy / g.det;
     g.cc = g.xx / g.det;
+    g.qa = -0.5f * LOG2E * g.ca;
+    g.qb = -0.5f * LOG2E * g.cb;
+    g.qc = -0.5f * LOG2E * g.cc;
     g.outer_y = g.yy >= g.xx ? 1 : 0;
     g.var_o = g.outer_y ? g.yy : g.xx;
     const float var_i = g.outer_y ? g.xx : g.yy;
@@ -94,7 +99,7 @@ static Gauss setup_gaussian(int mode, float k, const float* mean, const float* c
     const double k_alpha2 = std::max(0.0, 2.0 * std::log(255.0 * (double)opacity));
     double ext_x, ext_y;
     if (mode == MODE_CENTRE || (mode == MODE_EAA && g.nodes <= 1)) {
-        const double kk = std::min((double)k * k, k_alpha2);
+        const double kk = std::min((double)k * k, k_alpha2) * (1.0 + 1e-4) + 1e-3;
         ext_x = std::sqrt(kk * g.xx);
         ext_y = std::sqrt(kk * g.yy);
     } else if (mode == MODE_EAA) {
@@ -127,18 +132,54 @@ static inline vf lane_offsets() {
     return v;
 }
 
+// The Gaussians of a tile list are scattered over the depth-sorted array (L2 misses): fetch ahead.
+constexpr int PREFETCH_DISTANCE = 6;
+static inline __attribute__((always_inline)) void prefetch_pair(const Scene& sc, int32_t m, int channels) {
+    if (m < 0) return;
+    const char* g = reinterpret_cast<const char*>(sc.gauss + m);
+    __builtin_prefetch(g);
+    __builtin_prefetch(g + 64);
+    __builtin_prefetch(sc.colors + (int64_t)m * channels);
+}
+
+template <int MODE>
+static inline __attribute__((always_inline)) bool uses_centre(const Gauss& g) {
+    return MODE == MODE_CENTRE || (MODE == MODE_EAA && g.nodes <= 1);
+}
+
+// Rows [*ra, *rb] and blocks [*b0, *b1] of the tile at (x0, y0) that cover the Gaussian's pixel box.
+// The row count is made even (rows are processed in pairs, which halves the loop overhead and gives the
+// CPU two independent pixel vectors per iteration); the extra row lies outside the box, where every
+// footprint is below 1/255 or cut, so evaluating it changes nothing.
+static inline __attribute__((always_inline)) bool tile_span(const Gauss& g, int x0, int y0, int* ra, int* rb,
+                                                            int* b0, int* b1) {
+    int r0 = std::max(g.py0 - y0, 0), r1 = std::min(g.py1 - y0, TILE - 1);
+    const int c0 = std::max(g.px0 - x0, 0), c1 = std::min(g.px1 - x0, TILE - 1);
+    if (r0 > r1 || c0 > c1) return false;
+    if (((r1 - r0) & 1) == 0) {
+        if (r1 < TILE - 1)
+            ++r1;
+        else
+            --r0;
+    }
+    *ra = r0;
+    *rb = r1;
+    *b0 = c0 / LANES;
+    *b1 = c1 / LANES;
+    return true;
+}
+
 template <int MODE>
 static inline __attribute__((always_inline)) vf eval_footprint(const Gauss& g, const Settings& S, float k2, vf px,
                                                                float py, CentrePixel* cp, EaaPixel* ep,
                                                                ExactPixel* xp) {
-    if (MODE == MODE_CENTRE) return centre_eval(g, k2, px, py, cp);
-    if (MODE == MODE_EAA) {
-        if (g.nodes <= 1) return centre_eval(g, k2, px, py, cp);
-        return eaa_eval(g, S, px, py, ep);
-    }
+    if (uses_centre<MODE>(g)) return centre_eval(g, k2, px, py, cp);
+    if (MODE == MODE_EAA) return eaa_eval(g, S, px, py, ep);
     return exact_eval(g, S, px, py, xp);
 }
 
+// One tile, Gaussian by Gaussian (front to back) over the 8-pixel row segments of its box; the tile's
+// transmittance and sums live in small arrays (L1).
 template <int C, int MODE>
 static int64_t forward_tile(const Scene& sc, int tile, float* out_color, float* out_depth, float* out_alpha,
                             int32_t* out_last) {
@@ -156,40 +197,46 @@ static int64_t forward_tile(const Scene& sc, int tile, float* out_color, float* 
     const vf lane = lane_offsets();
     const int32_t begin = sc.tile_offsets[tile], end = sc.tile_offsets[tile + 1];
     int64_t lanes = 0;
-    CentrePixel cp;
-    EaaPixel ep;
-    ExactPixel xp;
+    CentrePixel cp0, cp1;
+    EaaPixel ep0, ep1;
+    ExactPixel xp0, xp1;
     for (int32_t j = begin; j < end; ++j) {
-        const int32_t gi = sc.isect_gauss[j];
-        const Gauss& g = sc.gauss[gi];
-        const int r0 = std::max(g.py0 - y0, 0), r1 = std::min(g.py1 - y0, TILE - 1);
-        const int b0 = std::max(g.px0 - x0, 0) / LANES, b1 = std::min(g.px1 - x0, TILE - 1) / LANES;
+        prefetch_pair(sc, j + PREFETCH_DISTANCE < end ? sc.isect_ids[j + PREFETCH_DISTANCE] : -1, C);
+        const int32_t m = sc.isect_ids[j];
+        const Gauss& g = sc.gauss[m];
+        int ra, rb, b0, b1;
+        if (!tile_span(g, x0, y0, &ra, &rb, &b0, &b1)) continue;
         const vi slot = splati(j - begin + 1);
         vf col[C];
-        for (int c = 0; c < C; ++c) col[c] = splat(sc.colors[(int64_t)gi * C + c]);
+        for (int c = 0; c < C; ++c) col[c] = splat(sc.colors[(int64_t)m * C + c]);
         const vf z = splat(g.depth);
-        for (int r = r0; r <= r1; ++r) {
-            const float py = (float)(y0 + r);
+        // alpha = min(0.99, a), skipped below 1/255; a pixel stops at the first Gaussian that would leave
+        // T < 1e-4 (that one does not contribute); a stopped pixel keeps T = 0.
+        auto composite = [&](int v, vf a) __attribute__((always_inline)) {
+            const vi valid = a >= splat(ALPHA_MIN);
+            const vf t = T[v];
+            const vf w = keep(valid, vmin(a, splat(ALPHA_MAX)) * t);
+            const vf tn = t - w;
+            const vi ok = tn >= splat(TRANSMITTANCE_MIN);
+            const vf wc = keep(ok, w);
+            for (int c = 0; c < C; ++c) acc_c[c][v] += wc * col[c];
+            acc_d[v] += wc * z;
+            acc_a[v] += wc;
+            T[v] = select(valid, keep(ok, tn), t);
+            last[v] = selecti(valid & ok, slot, last[v]);
+        };
+        for (int r = ra; r < rb; r += 2) {
+            const float py0 = (float)(y0 + r), py1 = py0 + 1.f;
             for (int b = b0; b <= b1; ++b) {
-                const int v = r * BLOCKS_PER_ROW + b;
+                const int v0 = r * BLOCKS_PER_ROW + b;
                 const vf px = splat((float)(x0 + b * LANES)) + lane;
-                const vf a = eval_footprint<MODE>(g, S, k2, px, py, &cp, &ep, &xp);
-                vf al = vmin(a, splat(ALPHA_MAX));
-                al = select(a < splat(ALPHA_MIN), splat(0.f), al);
-                const vf t = T[v];
-                const vf tn = t - al * t;
-                const vi positive = al > splat(0.f);
-                const vi contrib = positive & (tn >= splat(TRANSMITTANCE_MIN));
-                const vi stop = positive & (tn < splat(TRANSMITTANCE_MIN));
-                const vf w = select(contrib, al * t, splat(0.f));
-                for (int c = 0; c < C; ++c) acc_c[c][v] += w * col[c];
-                acc_d[v] += w * z;
-                acc_a[v] += w;
-                T[v] = select(contrib, tn, select(stop, splat(0.f), t));
-                last[v] = selecti(contrib, slot, last[v]);
+                const vf a0 = eval_footprint<MODE>(g, S, k2, px, py0, &cp0, &ep0, &xp0);
+                const vf a1 = eval_footprint<MODE>(g, S, k2, px, py1, &cp1, &ep1, &xp1);
+                composite(v0, a0);
+                composite(v0 + BLOCKS_PER_ROW, a1);
             }
         }
-        lanes += (int64_t)(r1 - r0 + 1) * (b1 - b0 + 1) * LANES;
+        lanes += (int64_t)(rb - ra + 1) * (b1 - b0 + 1) * LANES;
         if (((j - begin) & 15) == 15) {  // the whole tile saturated: nothing behind can show
             vi alive = splati(0);
             for (int v = 0; v < NV; ++v) alive |= T[v] > splat(0.f);
@@ -232,18 +279,15 @@ template <int MODE, bool GO>
 static inline __attribute__((always_inline)) void grad_footprint(const Gauss& g, const Settings& S, float py,
                                                                  const CentrePixel& cp, const EaaPixel& ep,
                                                                  const ExactPixel& xp, vf ga, FootAcc* acc) {
-    if (MODE == MODE_CENTRE) {
+    if (uses_centre<MODE>(g))
         centre_grad<GO>(g, py, cp, ga, acc);
-    } else if (MODE == MODE_EAA) {
-        if (g.nodes <= 1)
-            centre_grad<GO>(g, py, cp, ga, acc);
-        else
-            eaa_grad<GO>(g, S, ep, ga, acc);
-    } else {
+    else if (MODE == MODE_EAA)
+        eaa_grad<GO>(g, S, ep, ga, acc);
+    else
         exact_grad<GO>(g, S, xp, ga, acc);
-    }
 }
 
+// Record of one (tile, Gaussian) pair: d/d(mx, my, xx, xy, yy, det, opacity, depth, colour[C]).
 template <int C, int MODE, bool GC, bool GO>
 static void backward_tile(const Scene& sc, int tile, const GradInputs& gin, float* records) {
     constexpr int REC = 8 + C;
@@ -257,7 +301,7 @@ static void backward_tile(const Scene& sc, int tile, const GradInputs& gin, floa
             const int v = r * BLOCKS_PER_ROW + b;
             for (int i = 0; i < LANES; ++i) {
                 const int x = x0 + b * LANES + i, y = y0 + r;
-                float gd = 0.f, gal = 0.f, st = 0.f, gc[C > 0 ? C : 1] = {};
+                float gd = 0.f, gal = 0.f, st = 0.f, gc[C] = {};
                 int32_t la = 0;
                 if (x < sc.width && y < sc.height) {
                     const int64_t p = (int64_t)y * sc.width + x;
@@ -285,52 +329,57 @@ static void backward_tile(const Scene& sc, int tile, const GradInputs& gin, floa
     const int32_t begin = sc.tile_offsets[tile], end = sc.tile_offsets[tile + 1];
     const int32_t stop = begin + std::min<int32_t>(hmax_i(lmax), end - begin);
     const vf lane = lane_offsets();
-    CentrePixel cp;
-    EaaPixel ep;
-    ExactPixel xp;
+    CentrePixel cp0, cp1;
+    EaaPixel ep0, ep1;
+    ExactPixel xp0, xp1;
     for (int32_t j = begin; j < stop; ++j) {
-        const int32_t gi = sc.isect_gauss[j];
-        const Gauss& g = sc.gauss[gi];
-        const int r0 = std::max(g.py0 - y0, 0), r1 = std::min(g.py1 - y0, TILE - 1);
-        const int b0 = std::max(g.px0 - x0, 0) / LANES, b1 = std::min(g.px1 - x0, TILE - 1) / LANES;
+        prefetch_pair(sc, j + PREFETCH_DISTANCE < stop ? sc.isect_ids[j + PREFETCH_DISTANCE] : -1, C);
+        const int32_t m = sc.isect_ids[j];
+        const Gauss& g = sc.gauss[m];
+        int ra, rb, b0, b1;
+        if (!tile_span(g, x0, y0, &ra, &rb, &b0, &b1)) continue;
         const vi slot = splati(j - begin);
         vf col[C];
-        for (int c = 0; c < C; ++c) col[c] = splat(sc.colors[(int64_t)gi * C + c]);
+        for (int c = 0; c < C; ++c) col[c] = splat(sc.colors[(int64_t)m * C + c]);
         const vf z = splat(g.depth);
         FootAcc acc;
         acc.zero();
         vf acc_c[C], acc_d = splat(0.f);
         for (int c = 0; c < C; ++c) acc_c[c] = splat(0.f);
-        for (int r = r0; r <= r1; ++r) {
-            const float py = (float)(y0 + r);
+        auto process = [&](int v, vf px, float py, CentrePixel* cp, EaaPixel* ep, ExactPixel* xp)
+                           __attribute__((always_inline)) {
+            const vi listed = slot < last[v];
+            if (!any_lane(listed)) return;
+            const vf a = eval_footprint<MODE>(g, S, k2, px, py, cp, ep, xp);
+            const vi valid = listed & (a >= splat(ALPHA_MIN));
+            if (!any_lane(valid)) return;
+            const vf al = vmin(a, splat(ALPHA_MAX));
+            vf s = gdep[v] * z + galp[v];
+            for (int c = 0; c < C; ++c) s += gcol[c][v] * col[c];
+            const vf t = T[v];
+            const vf w = keep(valid, al * t);
+            prefix[v] += w * s;
+            // d out / d alpha_i = T_i s_i - (sum_{j > i} w_j s_j) / (1 - alpha_i)
+            const vf dal = t * s - (stot[v] - prefix[v]) / (splat(1.f) - al);
+            const vf ga = keep(valid & (a <= splat(ALPHA_MAX)), dal);
+            T[v] = t - w;
+            if (GC)
+                for (int c = 0; c < C; ++c) acc_c[c] += w * gcol[c][v];
+            acc_d += w * gdep[v];
+            grad_footprint<MODE, GO>(g, S, py, *cp, *ep, *xp, ga, &acc);
+        };
+        for (int r = ra; r < rb; r += 2) {
+            const float py0 = (float)(y0 + r), py1 = py0 + 1.f;
             for (int b = b0; b <= b1; ++b) {
-                const int v = r * BLOCKS_PER_ROW + b;
-                const vi listed = slot < last[v];
-                if (!any_lane(listed)) continue;
+                const int v0 = r * BLOCKS_PER_ROW + b;
                 const vf px = splat((float)(x0 + b * LANES)) + lane;
-                const vf a = eval_footprint<MODE>(g, S, k2, px, py, &cp, &ep, &xp);
-                vf al = vmin(a, splat(ALPHA_MAX));
-                al = select(a < splat(ALPHA_MIN), splat(0.f), al);
-                const vi valid = listed & (al > splat(0.f));
-                if (!any_lane(valid)) continue;
-                vf s = gdep[v] * z + galp[v];
-                for (int c = 0; c < C; ++c) s += gcol[c][v] * col[c];
-                const vf t = T[v];
-                const vf w = select(valid, al * t, splat(0.f));
-                prefix[v] += w * s;
-                // d out / d alpha_i = T_i s_i - (sum_{j > i} w_j s_j) / (1 - alpha_i)
-                const vf dal = t * s - (stot[v] - prefix[v]) / (splat(1.f) - al);
-                const vf ga = select(valid & (a <= splat(ALPHA_MAX)), dal, splat(0.f));
-                T[v] = select(valid, t - al * t, t);
-                if (GC)
-                    for (int c = 0; c < C; ++c) acc_c[c] += w * gcol[c][v];
-                acc_d += w * gdep[v];
-                grad_footprint<MODE, GO>(g, S, py, cp, ep, xp, ga, &acc);
+                process(v0, px, py0, &cp0, &ep0, &xp0);
+                process(v0 + BLOCKS_PER_ROW, px, py1, &cp1, &ep1, &xp1);
             }
         }
         float sums[6] = {hsum(acc.g0), hsum(acc.g1), hsum(acc.g2), hsum(acc.g3), hsum(acc.g4), hsum(acc.go)};
         float* rec = records + (int64_t)j * REC;
-        if (MODE == MODE_CENTRE || (MODE == MODE_EAA && g.nodes <= 1))
+        if (uses_centre<MODE>(g))
             centre_finalize(g, sums, rec);
         else
             rows_finalize(g, sums, rec);
@@ -348,78 +397,115 @@ static void check_tensor(const at::Tensor& t, const char* name, at::ScalarType d
     TORCH_CHECK(t.device().is_cpu(), "mipslam cpu rasterizer: ", name, " must be a CPU tensor");
     TORCH_CHECK(t.scalar_type() == dtype, "mipslam cpu rasterizer: ", name, " has the wrong dtype");
     TORCH_CHECK(t.is_contiguous(), "mipslam cpu rasterizer: ", name, " must be contiguous");
-    TORCH_CHECK(t.size(0) == dim0, "mipslam cpu rasterizer: ", name, " has the wrong length");
+    TORCH_CHECK(t.dim() >= 1 && t.size(0) == dim0, "mipslam cpu rasterizer: ", name, " has the wrong length");
     if (dim1 >= 0)
         TORCH_CHECK(t.dim() >= 2 && t.size(1) == dim1, "mipslam cpu rasterizer: ", name, " has the wrong shape");
 }
 
-struct Prepared {
-    std::vector<Gauss> gauss;
-    at::Tensor tile_offsets, isect_gauss, gauss_offsets, isect_pos;
-    int tiles_x, tiles_y;
+struct Inputs {
+    const float *means2d, *cov, *opacity, *depth, *colors;
+    const int32_t* node_counts;
+    int64_t n, channels;
 };
 
-static Prepared prepare(const at::Tensor& means2d, const at::Tensor& cov, const at::Tensor& opacity,
-                        const at::Tensor& depth, const at::Tensor& node_counts, int mode, float k, int width,
-                        int height, int threads) {
-    const int64_t n = means2d.size(0);
-    Prepared out;
-    out.tiles_x = (width + TILE - 1) / TILE;
-    out.tiles_y = (height + TILE - 1) / TILE;
-    const int64_t num_tiles = (int64_t)out.tiles_x * out.tiles_y;
-    out.gauss.resize(n);
-    std::vector<int64_t> count(n + 1, 0);
-    const float* m = means2d.data_ptr<float>();
-    const float* cv = cov.data_ptr<float>();
-    const float* op = opacity.data_ptr<float>();
-    const float* dp = depth.data_ptr<float>();
-    const int32_t* nc = node_counts.data_ptr<int32_t>();
-    Gauss* gs = out.gauss.data();
+// Depth-sorted drawn Gaussians and their colours. order[m] = input index of sorted Gaussian m.
+struct Sorted {
+    std::vector<Gauss> gauss;
+    std::vector<float> colors;
+};
+
+static void setup_all(const Inputs& in, int mode, float k, int width, int height, int threads, Gauss* gs,
+                      uint8_t* drawn) {
 #pragma omp parallel for schedule(static) num_threads(threads)
-    for (int64_t i = 0; i < n; ++i) {
-        bool drawn = false;
-        gs[i] = setup_gaussian(mode, k, m + 2 * i, cv + 4 * i, op[i], dp[i], nc[i], width, height, &drawn);
-        count[i] = drawn ? (int64_t)(gs[i].px1 / TILE - gs[i].px0 / TILE + 1) * (gs[i].py1 / TILE - gs[i].py0 / TILE + 1)
-                         : 0;
+    for (int64_t i = 0; i < in.n; ++i) {
+        bool d = false;
+        gs[i] = setup_gaussian(mode, k, in.means2d + 2 * i, in.cov + 4 * i, in.opacity[i], in.depth[i],
+                               in.node_counts[i], width, height, &d);
+        drawn[i] = d ? 1 : 0;
     }
-    // Per-Gaussian ranges of pairs (row-major over its tiles).
-    out.gauss_offsets = at::empty({n + 1}, at::kInt);
-    int32_t* goff = out.gauss_offsets.data_ptr<int32_t>();
-    int64_t total = 0;
+}
+
+// Gather the drawn Gaussians (and colours) into depth order: sorted[m] = all[order[m]].
+static void gather_sorted(const Inputs& in, const Gauss* all, const int32_t* order, int64_t count, int threads,
+                          Sorted* out) {
+    out->gauss.resize(count);
+    out->colors.resize(count * in.channels);
+    Gauss* gs = out->gauss.data();
+    float* cs = out->colors.data();
+#pragma omp parallel for schedule(static) num_threads(threads)
+    for (int64_t m = 0; m < count; ++m) {
+        const int64_t i = order[m];
+        gs[m] = all[i];
+        for (int64_t c = 0; c < in.channels; ++c) cs[m * in.channels + c] = in.colors[i * in.channels + c];
+    }
+}
+
+struct Binning {
+    at::Tensor order;         // [M] int32 input index of each drawn Gaussian, front to back
+    at::Tensor tile_offsets;  // [tiles + 1] int32
+    at::Tensor isect_ids;     // [P] int32 sorted index of each pair (tile-major)
+    at::Tensor pair_offsets;  // [M + 1] int32 pairs of sorted Gaussian m: isect_pos[pair_offsets[m] ..]
+    at::Tensor isect_pos;     // [P] int32 position of each of those pairs in the tile-major list
+};
+
+static Binning bin_gaussians(const Inputs& in, int mode, float k, int width, int height, int threads,
+                             Sorted* sorted) {
+    const int64_t n = in.n;
+    const int tiles_x = (width + TILE - 1) / TILE, tiles_y = (height + TILE - 1) / TILE;
+    const int64_t num_tiles = (int64_t)tiles_x * tiles_y;
+    std::vector<Gauss> all(n);
+    std::vector<uint8_t> drawn(n, 0);
+    setup_all(in, mode, k, width, height, threads, all.data(), drawn.data());
+    // Depth order, ties in input order (the torch backend's stable argsort): one 64-bit key per drawn
+    // Gaussian, (depth as an order-preserving unsigned integer, index). Depths are finite here.
+    std::vector<uint64_t> keys;
+    keys.reserve(n);
     for (int64_t i = 0; i < n; ++i) {
-        goff[i] = (int32_t)total;
-        total += count[i];
+        if (!drawn[i]) continue;
+        const float z = in.depth[i] == 0.f ? 0.f : in.depth[i];  // -0 sorts with +0
+        uint32_t bits;
+        std::memcpy(&bits, &z, sizeof(bits));
+        bits = (bits & 0x80000000u) ? ~bits : (bits | 0x80000000u);
+        keys.push_back(((uint64_t)bits << 32) | (uint64_t)i);
+    }
+    std::sort(keys.begin(), keys.end());
+    const int64_t count = (int64_t)keys.size();
+    Binning out;
+    out.order = at::empty({count}, at::kInt);
+    int32_t* order = out.order.data_ptr<int32_t>();
+    for (int64_t m = 0; m < count; ++m) order[m] = (int32_t)(keys[m] & 0xffffffffu);
+    gather_sorted(in, all.data(), order, count, threads, sorted);
+    const Gauss* gs = sorted->gauss.data();
+
+    out.pair_offsets = at::empty({count + 1}, at::kInt);
+    int32_t* poff = out.pair_offsets.data_ptr<int32_t>();
+    out.tile_offsets = at::zeros({num_tiles + 1}, at::kInt);
+    int32_t* toff = out.tile_offsets.data_ptr<int32_t>();
+    int64_t total = 0;
+    for (int64_t m = 0; m < count; ++m) {
+        const Gauss& g = gs[m];
+        poff[m] = (int32_t)total;
+        for (int ty = g.py0 / TILE; ty <= g.py1 / TILE; ++ty)
+            for (int tx = g.px0 / TILE; tx <= g.px1 / TILE; ++tx) toff[(int64_t)ty * tiles_x + tx + 1] += 1;
+        total += (int64_t)(g.px1 / TILE - g.px0 / TILE + 1) * (g.py1 / TILE - g.py0 / TILE + 1);
         TORCH_CHECK(total < (int64_t)std::numeric_limits<int32_t>::max(),
                     "mipslam cpu rasterizer: more than 2^31 (tile, Gaussian) pairs; render at a lower resolution");
     }
-    goff[n] = (int32_t)total;
-    // Depth order (stable: ties keep the input order), then counting sort by tile keeps it per tile.
-    std::vector<int32_t> order;
-    order.reserve(n);
-    for (int64_t i = 0; i < n; ++i)
-        if (count[i] > 0) order.push_back((int32_t)i);
-    std::stable_sort(order.begin(), order.end(), [&](int32_t a, int32_t b) { return dp[a] < dp[b]; });
-    out.tile_offsets = at::zeros({num_tiles + 1}, at::kInt);
-    int32_t* toff = out.tile_offsets.data_ptr<int32_t>();
-    for (int32_t i : order) {
-        const Gauss& g = gs[i];
-        for (int ty = g.py0 / TILE; ty <= g.py1 / TILE; ++ty)
-            for (int tx = g.px0 / TILE; tx <= g.px1 / TILE; ++tx) toff[(int64_t)ty * out.tiles_x + tx + 1] += 1;
-    }
+    poff[count] = (int32_t)total;
     for (int64_t t = 0; t < num_tiles; ++t) toff[t + 1] += toff[t];
-    out.isect_gauss = at::empty({total}, at::kInt);
+    out.isect_ids = at::empty({total}, at::kInt);
     out.isect_pos = at::empty({total}, at::kInt);
-    int32_t* ig = out.isect_gauss.data_ptr<int32_t>();
-    int32_t* ip = out.isect_pos.data_ptr<int32_t>();
+    int32_t* ids = out.isect_ids.data_ptr<int32_t>();
+    int32_t* pos = out.isect_pos.data_ptr<int32_t>();
     std::vector<int32_t> cursor(toff, toff + num_tiles);
-    for (int32_t i : order) {
-        const Gauss& g = gs[i];
-        int32_t kk = goff[i];
+    for (int64_t m = 0; m < count; ++m) {
+        const Gauss& g = gs[m];
+        int32_t q = poff[m];
         for (int ty = g.py0 / TILE; ty <= g.py1 / TILE; ++ty)
             for (int tx = g.px0 / TILE; tx <= g.px1 / TILE; ++tx) {
-                const int32_t pos = cursor[(int64_t)ty * out.tiles_x + tx]++;
-                ig[pos] = i;
-                ip[kk++] = pos;
+                const int32_t p = cursor[(int64_t)ty * tiles_x + tx]++;
+                ids[p] = (int32_t)m;
+                pos[q++] = p;
             }
     }
     return out;
@@ -438,19 +524,23 @@ static Settings make_settings(int mode, double k, double eta, double tau, const 
     return s;
 }
 
-static void check_inputs(const at::Tensor& means2d, const at::Tensor& cov, const at::Tensor& opacity,
-                         const at::Tensor& depth, const at::Tensor& colors, const at::Tensor& node_counts,
-                         int64_t mode, const at::Tensor& gl_nodes, const at::Tensor& gl_weights) {
+static Inputs check_inputs(const at::Tensor& means2d, const at::Tensor& cov, const at::Tensor& opacity,
+                           const at::Tensor& depth, const at::Tensor& colors, const at::Tensor& node_counts,
+                           int64_t mode, int64_t width, int64_t height, const at::Tensor& gl_nodes,
+                           const at::Tensor& gl_weights) {
     const int64_t n = means2d.size(0);
     check_tensor(means2d, "means2d", at::kFloat, n, 2);
     check_tensor(cov, "cov", at::kFloat, n, 4);
     check_tensor(opacity, "opacity", at::kFloat, n, -1);
     check_tensor(depth, "depth", at::kFloat, n, -1);
+    TORCH_CHECK(colors.dim() == 2, "mipslam cpu rasterizer: colors must be [N, C]");
     check_tensor(colors, "colors", at::kFloat, n, colors.size(1));
     check_tensor(node_counts, "node_counts", at::kInt, n, -1);
     check_tensor(gl_nodes, "gl_nodes", at::kFloat, gl_nodes.size(0), -1);
     check_tensor(gl_weights, "gl_weights", at::kFloat, gl_nodes.size(0), -1);
     TORCH_CHECK(mode >= 0 && mode <= 2, "mipslam cpu rasterizer: unknown mode ", mode);
+    TORCH_CHECK(width >= 1 && height >= 1 && width <= (1 << 24) && height <= (1 << 24),
+                "mipslam cpu rasterizer: image size must be in [1, 2^24]");
     TORCH_CHECK(gl_nodes.size(0) >= 1 && gl_nodes.size(0) <= MAX_ROWS,
                 "mipslam cpu rasterizer: exact order must be in [1, ", MAX_ROWS, "]");
     if (n > 0 && mode == MODE_EAA) {
@@ -459,6 +549,9 @@ static void check_inputs(const at::Tensor& means2d, const at::Tensor& cov, const
             TORCH_CHECK(nc[i] >= 1 && nc[i] <= MAX_ROWS, "mipslam cpu rasterizer: EAA node counts must be in [1, ",
                         MAX_ROWS, "]");
     }
+    return Inputs{means2d.data_ptr<float>(), cov.data_ptr<float>(), opacity.data_ptr<float>(),
+                  depth.data_ptr<float>(), colors.data_ptr<float>(), node_counts.data_ptr<int32_t>(), n,
+                  colors.size(1)};
 }
 
 template <int C>
@@ -514,55 +607,63 @@ static void run_backward(const Scene& sc, int threads, const GradInputs& gin, fl
         default: TORCH_CHECK(false, "mipslam cpu rasterizer: colour channels must be 1, 3 or 4, got ", C_VALUE); \
     }
 
+// Returns color [H, W, C], depth [H, W], alpha [H, W], then the state the backward needs (order,
+// tile_offsets, isect_ids, pair_offsets, isect_pos, last [H, W]) and stats [2] int64 (footprint lanes
+// evaluated, pairs).
 std::vector<at::Tensor> rasterize_forward(const at::Tensor& means2d, const at::Tensor& cov,
                                           const at::Tensor& opacity, const at::Tensor& depth,
                                           const at::Tensor& colors, const at::Tensor& node_counts, int64_t mode,
                                           int64_t width, int64_t height, double k_sigma, double eta, double tau,
                                           const at::Tensor& gl_nodes, const at::Tensor& gl_weights,
                                           int64_t threads) {
-    check_inputs(means2d, cov, opacity, depth, colors, node_counts, mode, gl_nodes, gl_weights);
-    TORCH_CHECK(width >= 1 && height >= 1, "mipslam cpu rasterizer: image size must be positive");
-    const int64_t C = colors.size(1);
+    const Inputs in = check_inputs(means2d, cov, opacity, depth, colors, node_counts, mode, width, height, gl_nodes,
+                                   gl_weights);
+    const int64_t C = in.channels;
     at::Tensor color = at::zeros({height, width, C}, at::kFloat);
     at::Tensor depth_img = at::zeros({height, width}, at::kFloat);
     at::Tensor alpha_img = at::zeros({height, width}, at::kFloat);
     at::Tensor last = at::zeros({height, width}, at::kInt);
     at::Tensor stats = at::zeros({2}, at::kLong);
-    Prepared prep;
+    Binning bins;
     {
         pybind11::gil_scoped_release no_gil;
-        prep = prepare(means2d, cov, opacity, depth, node_counts, (int)mode, (float)k_sigma, (int)width,
-                       (int)height, (int)threads);
-        Scene sc{(int)width, (int)height, prep.tiles_x, prep.tiles_y, (int)C,
-                 make_settings((int)mode, k_sigma, eta, tau, gl_nodes, gl_weights), prep.gauss.data(),
-                 colors.data_ptr<float>(), prep.tile_offsets.data_ptr<int32_t>(),
-                 prep.isect_gauss.data_ptr<int32_t>()};
+        Sorted sorted;
+        bins = bin_gaussians(in, (int)mode, (float)k_sigma, (int)width, (int)height, (int)threads, &sorted);
+        Scene sc{(int)width, (int)height, (int)((width + TILE - 1) / TILE), (int)((height + TILE - 1) / TILE),
+                 (int)C, make_settings((int)mode, k_sigma, eta, tau, gl_nodes, gl_weights), sorted.gauss.data(),
+                 sorted.colors.data(), bins.tile_offsets.data_ptr<int32_t>(), bins.isect_ids.data_ptr<int32_t>()};
         int64_t lanes = 0;
         MIPSLAM_DISPATCH_CHANNELS(C, lanes = run_forward<CH>(sc, (int)threads, color.data_ptr<float>(),
                                                            depth_img.data_ptr<float>(), alpha_img.data_ptr<float>(),
                                                            last.data_ptr<int32_t>()));
         stats.data_ptr<int64_t>()[0] = lanes;
-        stats.data_ptr<int64_t>()[1] = prep.isect_gauss.size(0);
+        stats.data_ptr<int64_t>()[1] = bins.isect_ids.size(0);
     }
-    return {color, depth_img, alpha_img, prep.tile_offsets, prep.isect_gauss, prep.gauss_offsets, prep.isect_pos,
-            last, stats};
+    return {color, depth_img, alpha_img, bins.order, bins.tile_offsets, bins.isect_ids, bins.pair_offsets,
+            bins.isect_pos, last, stats};
 }
 
+// Gradient of sum(grad_color * color + grad_depth * depth + grad_alpha * alpha) with respect to
+// means2d [N, 2], cov [N, 4], opacity [N], depth [N], colors [N, C] (in this order).
 std::vector<at::Tensor> rasterize_backward(
     const at::Tensor& means2d, const at::Tensor& cov, const at::Tensor& opacity, const at::Tensor& depth,
     const at::Tensor& colors, const at::Tensor& node_counts, int64_t mode, int64_t width, int64_t height,
     double k_sigma, double eta, double tau, const at::Tensor& gl_nodes, const at::Tensor& gl_weights,
-    const at::Tensor& tile_offsets, const at::Tensor& isect_gauss, const at::Tensor& gauss_offsets,
-    const at::Tensor& isect_pos, const at::Tensor& last, const at::Tensor& color, const at::Tensor& depth_img,
-    const at::Tensor& alpha_img, const at::Tensor& grad_color, const at::Tensor& grad_depth,
-    const at::Tensor& grad_alpha, bool need_color_grad, bool need_opacity_grad, int64_t threads) {
-    check_inputs(means2d, cov, opacity, depth, colors, node_counts, mode, gl_nodes, gl_weights);
-    const int64_t n = means2d.size(0), C = colors.size(1);
-    const int64_t num_tiles = ((width + TILE - 1) / TILE) * ((height + TILE - 1) / TILE);
+    const at::Tensor& order, const at::Tensor& tile_offsets, const at::Tensor& isect_ids,
+    const at::Tensor& pair_offsets, const at::Tensor& isect_pos, const at::Tensor& last, const at::Tensor& color,
+    const at::Tensor& depth_img, const at::Tensor& alpha_img, const at::Tensor& grad_color,
+    const at::Tensor& grad_depth, const at::Tensor& grad_alpha, bool need_color_grad, bool need_opacity_grad,
+    int64_t threads) {
+    const Inputs in = check_inputs(means2d, cov, opacity, depth, colors, node_counts, mode, width, height, gl_nodes,
+                                   gl_weights);
+    const int64_t n = in.n, C = in.channels;
+    const int tiles_x = (int)((width + TILE - 1) / TILE), tiles_y = (int)((height + TILE - 1) / TILE);
+    const int64_t num_tiles = (int64_t)tiles_x * tiles_y;
+    const int64_t count = order.size(0), total = isect_ids.size(0);
+    check_tensor(order, "order", at::kInt, count, -1);
     check_tensor(tile_offsets, "tile_offsets", at::kInt, num_tiles + 1, -1);
-    check_tensor(gauss_offsets, "gauss_offsets", at::kInt, n + 1, -1);
-    const int64_t total = isect_gauss.size(0);
-    check_tensor(isect_gauss, "isect_gauss", at::kInt, total, -1);
+    check_tensor(pair_offsets, "pair_offsets", at::kInt, count + 1, -1);
+    check_tensor(isect_ids, "isect_ids", at::kInt, total, -1);
     check_tensor(isect_pos, "isect_pos", at::kInt, total, -1);
     check_tensor(last, "last", at::kInt, height, width);
     check_tensor(color, "color", at::kFloat, height, width);
@@ -580,24 +681,27 @@ std::vector<at::Tensor> rasterize_backward(
     at::Tensor g_colors = at::zeros({n, C}, at::kFloat);
     {
         pybind11::gil_scoped_release no_gil;
-        const int tiles_x = (int)((width + TILE - 1) / TILE), tiles_y = (int)((height + TILE - 1) / TILE);
-        // Re-create the per-Gaussian set-up (cheap, identical to the forward's).
-        std::vector<Gauss> gauss(n);
-        const float* m = means2d.data_ptr<float>();
-        const float* cv = cov.data_ptr<float>();
-        const float* op = opacity.data_ptr<float>();
-        const float* dp = depth.data_ptr<float>();
-        const int32_t* nc = node_counts.data_ptr<int32_t>();
-        Gauss* gs = gauss.data();
+        const int32_t* ord = order.data_ptr<int32_t>();
+        for (int64_t m = 0; m < count; ++m)
+            TORCH_CHECK(ord[m] >= 0 && ord[m] < n, "mipslam cpu rasterizer: corrupt backward state (order)");
+        Sorted sorted;  // identical to the forward's (same inputs, same arithmetic)
+        sorted.gauss.resize(count);
+        sorted.colors.resize(count * C);
+        {
+            Gauss* gs = sorted.gauss.data();
+            float* cs = sorted.colors.data();
 #pragma omp parallel for schedule(static) num_threads((int)threads)
-        for (int64_t i = 0; i < n; ++i) {
-            bool drawn = false;
-            gs[i] = setup_gaussian((int)mode, (float)k_sigma, m + 2 * i, cv + 4 * i, op[i], dp[i], nc[i], (int)width,
-                                   (int)height, &drawn);
+            for (int64_t m = 0; m < count; ++m) {
+                const int64_t i = ord[m];
+                bool drawn = false;
+                gs[m] = setup_gaussian((int)mode, (float)k_sigma, in.means2d + 2 * i, in.cov + 4 * i, in.opacity[i],
+                                       in.depth[i], in.node_counts[i], (int)width, (int)height, &drawn);
+                for (int64_t c = 0; c < C; ++c) cs[m * C + c] = in.colors[i * C + c];
+            }
         }
         Scene sc{(int)width, (int)height, tiles_x, tiles_y, (int)C,
-                 make_settings((int)mode, k_sigma, eta, tau, gl_nodes, gl_weights), gauss.data(),
-                 colors.data_ptr<float>(), tile_offsets.data_ptr<int32_t>(), isect_gauss.data_ptr<int32_t>()};
+                 make_settings((int)mode, k_sigma, eta, tau, gl_nodes, gl_weights), sorted.gauss.data(),
+                 sorted.colors.data(), tile_offsets.data_ptr<int32_t>(), isect_ids.data_ptr<int32_t>()};
         GradInputs gin{grad_color.data_ptr<float>(), grad_depth.data_ptr<float>(), grad_alpha.data_ptr<float>(),
                        color.data_ptr<float>(), depth_img.data_ptr<float>(), alpha_img.data_ptr<float>(),
                        last.data_ptr<int32_t>()};
@@ -605,8 +709,9 @@ std::vector<at::Tensor> rasterize_backward(
         std::vector<float> records((size_t)(total * rec));
         MIPSLAM_DISPATCH_CHANNELS(C, run_backward<CH>(sc, (int)threads, gin, records.data(), need_color_grad,
                                                       need_opacity_grad));
-        // Deterministic reduction: each Gaussian sums its pairs in tile order.
-        const int32_t* goff = gauss_offsets.data_ptr<int32_t>();
+        // Deterministic reduction: each Gaussian sums its pairs in tile order (no atomics, and the
+        // result does not depend on the number of threads or on the schedule).
+        const int32_t* poff = pair_offsets.data_ptr<int32_t>();
         const int32_t* ip = isect_pos.data_ptr<int32_t>();
         float* gm = g_means2d.data_ptr<float>();
         float* gc = g_cov.data_ptr<float>();
@@ -615,12 +720,13 @@ std::vector<at::Tensor> rasterize_backward(
         float* gcol = g_colors.data_ptr<float>();
         const float* rp = records.data();
 #pragma omp parallel for schedule(static) num_threads((int)threads)
-        for (int64_t i = 0; i < n; ++i) {
-            float acc[8 + 64] = {};
-            for (int32_t q = goff[i]; q < goff[i + 1]; ++q) {
+        for (int64_t m = 0; m < count; ++m) {
+            float acc[8 + 4] = {};
+            for (int32_t q = poff[m]; q < poff[m + 1]; ++q) {
                 const float* r = rp + (int64_t)ip[q] * rec;
                 for (int64_t e = 0; e < rec; ++e) acc[e] += r[e];
             }
+            const int64_t i = ord[m];
             gm[2 * i] = acc[0];
             gm[2 * i + 1] = acc[1];
             gc[4 * i] = acc[2];
@@ -635,7 +741,7 @@ std::vector<at::Tensor> rasterize_backward(
     return {g_means2d, g_cov, g_opacity, g_depth, g_colors};
 }
 
-// Test hooks: the vector exp / erf on a float tensor (any length).
+// Test hooks: the vector exp / erf on a float tensor (any length). which: 0 = exp, 1 = erf.
 at::Tensor vector_math(const at::Tensor& x, int64_t which) {
     TORCH_CHECK(x.scalar_type() == at::kFloat && x.dim() == 1 && x.is_contiguous(),
                 "vector_math: x must be a contiguous 1-D float32 tensor");

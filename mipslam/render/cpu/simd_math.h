@@ -6,8 +6,8 @@
 // made per pixel: exp and erf below are polynomial, branch-free and work on all lanes at once.
 //
 // Accuracy (measured against float64 references, see tests/test_render_cpu.py):
-//   vexp: relative error < 3e-7 on [-80, 80] (Cody-Waite reduction to |r| <= ln2/2, degree-6
-//         polynomial fitted by reweighted least squares, max relative error 1.9e-9 before rounding);
+//   vexp: relative error < 3e-7 on [-80, 80] (exp(x) = 2^(x log2 e), 2^r on |r| <= 1/2 by a degree-5
+//         polynomial fitted by reweighted least squares, max relative error 7.5e-8 before rounding);
 //         the argument is clamped to [-80, 80], so no lane takes the slow subnormal path.
 //   verf: absolute error < 2e-7 everywhere (|x| < 1: x P(x^2), degree 6; |x| >= 1:
 //         1 - exp(-x^2) Q(1/|x|) with Q a degree-7 fit of erfcx on [1, 4]; beyond 4 erf = 1 in float).
@@ -15,18 +15,44 @@
 
 #include <cstdint>
 
+#if defined(__AVX__)
+#include <immintrin.h>
+#endif
+
 namespace mipslam_cpu {
 
 constexpr int LANES = 8;
 typedef float vf __attribute__((vector_size(32), aligned(32)));
 typedef int32_t vi __attribute__((vector_size(32), aligned(32)));
+typedef uint32_t vu __attribute__((vector_size(32), aligned(32)));
 
 static inline __attribute__((always_inline)) vf splat(float x) { return vf{} + x; }
 static inline __attribute__((always_inline)) vi splati(int32_t x) { return vi{} + x; }
+
+#if defined(__AVX__)
+// Explicit instructions where the generic form would cost a compare and a blend (same semantics:
+// min/max return the second operand when either is NaN, exactly like `a < b ? a : b`).
+static inline __attribute__((always_inline)) vf select(vi mask, vf a, vf b) {
+    return (vf)_mm256_blendv_ps((__m256)b, (__m256)a, (__m256)mask);
+}
+static inline __attribute__((always_inline)) vf vmin(vf a, vf b) { return (vf)_mm256_min_ps((__m256)a, (__m256)b); }
+static inline __attribute__((always_inline)) vf vmax(vf a, vf b) { return (vf)_mm256_max_ps((__m256)a, (__m256)b); }
+static inline __attribute__((always_inline)) bool any_lane(vi m) {
+    return !_mm256_testz_si256((__m256i)m, (__m256i)m);
+}
+#else
 static inline __attribute__((always_inline)) vf select(vi mask, vf a, vf b) { return mask ? a : b; }
-static inline __attribute__((always_inline)) vi selecti(vi mask, vi a, vi b) { return mask ? a : b; }
 static inline __attribute__((always_inline)) vf vmin(vf a, vf b) { return a < b ? a : b; }
 static inline __attribute__((always_inline)) vf vmax(vf a, vf b) { return a > b ? a : b; }
+static inline bool any_lane(vi m) {
+    int32_t r = 0;
+    for (int i = 0; i < LANES; ++i) r |= m[i];
+    return r != 0;
+}
+#endif
+static inline __attribute__((always_inline)) vi selecti(vi mask, vi a, vi b) { return (vi)select(mask, (vf)a, (vf)b); }
+// zero where the mask is false (one AND instead of a blend)
+static inline __attribute__((always_inline)) vf keep(vi mask, vf a) { return (vf)(mask & (vi)a); }
 static inline __attribute__((always_inline)) vf vabs(vf a) { return (vf)((vi)a & splati(0x7fffffff)); }
 // sign(a) in {-1, 0, +1} like torch.sign
 static inline __attribute__((always_inline)) vf vsign(vf a) {
@@ -38,34 +64,34 @@ static inline float hsum(vf v) {
     for (int i = 0; i < LANES; ++i) s += v[i];
     return s;
 }
-static inline bool any_lane(vi m) {
-    int32_t r = 0;
-    for (int i = 0; i < LANES; ++i) r |= m[i];
-    return r != 0;
-}
 static inline int32_t hmax_i(vi v) {
     int32_t r = v[0];
     for (int i = 1; i < LANES; ++i) r = v[i] > r ? v[i] : r;
     return r;
 }
 
-// exp(x), x clamped to [-80, 80] (exp(-80) = 1.8e-35 is still a normal float).
+// 2^t for t in [-126, 127]; other lanes give unspecified values (callers mask or clamp them).
+// t = n + r with n = round(t), |r| <= 1/2; 2^n is built in the exponent bits by the 1.5 * 2^23 rounding
+// trick with the bias 127 folded into the constant (no float->int conversion); 2^r by a degree-5
+// polynomial (max relative error 7.5e-8) in Estrin form (short dependency chain).
+static inline __attribute__((always_inline)) vf vexp2_unclamped(vf t) {
+    const vf shifter = splat(12582912.f + 127.f);
+    const vf biased = t + shifter;  // n + 127 in the low mantissa bits
+    const vf r = t - (biased - shifter);
+    const vf r2 = r * r;
+    const vf p01 = splat(0.693146967026062f) * r + splat(1.0000000716534305f);
+    const vf p23 = splat(0.05550713336706294f) * r + splat(0.24022119727903957f);
+    const vf p45 = splat(0.0013276451558468932f) * r + splat(0.009675541171212429f);
+    const vf p = p01 + r2 * (p23 + r2 * p45);
+    return p * (vf)((vu)biased << 23);
+}
+
+constexpr float LOG2E = 1.44269504088896341f;
+
+// exp(x) with x clamped to [-80, 80] (exp(-80) = 1.8e-35 is still a normal float: no slow subnormal path).
+// Relative error < 3e-7 (the rounding of x log2(e) dominates for large |x|).
 static inline __attribute__((always_inline)) vf vexp(vf x) {
-    x = vmin(vmax(x, splat(-80.f)), splat(80.f));
-    const vf t = x * splat(1.44269504088896341f);
-    // round to nearest by the 1.5 * 2^23 trick (|t| < 2^22; needs IEEE semantics, no -ffast-math)
-    const vf n = (t + splat(12582912.f)) - splat(12582912.f);
-    vf r = x - n * splat(0.693359375f);      // ln2 split into an exact high part ...
-    r = r - n * splat(-2.12194440e-4f);      // ... and the remainder (Cody-Waite)
-    vf p = splat(1.38368300298475e-3f);
-    p = p * r + splat(8.37481571512344e-3f);
-    p = p * r + splat(4.166822585464257e-2f);
-    p = p * r + splat(1.666642017118457e-1f);
-    p = p * r + splat(4.9999992078550737e-1f);
-    p = p * r + splat(1.0000000363228003f);
-    p = p * r + splat(1.0000000005542478f);
-    const vi e = (__builtin_convertvector(n, vi) + splati(127)) << 23;
-    return p * (vf)e;
+    return vexp2_unclamped(vmin(vmax(x, splat(-80.f)), splat(80.f)) * splat(LOG2E));
 }
 
 // erf(x); also returns exp(-x^2) (the derivative up to 2/sqrt(pi)), which the backward reuses.
