@@ -6,9 +6,11 @@
 // made per pixel: exp and erf below are polynomial, branch-free and work on all lanes at once.
 //
 // Accuracy (measured against float64 references, see tests/test_render_cpu.py):
-//   vexp: relative error < 3e-7 on [-80, 80] (exp(x) = 2^(x log2 e), 2^r on |r| <= 1/2 by a degree-5
+//   vexp: relative error < 3e-7 on [-80, 80] (Cody-Waite reduction to |r| <= ln2/2, degree-5
 //         polynomial fitted by reweighted least squares, max relative error 7.5e-8 before rounding);
 //         the argument is clamped to [-80, 80], so no lane takes the slow subnormal path.
+//   vexp2_unclamped: the centre-sample path's 2^t (log2 e folded into the conic), relative error
+//         < 3e-7 for its arguments t in [-6.5, 0].
 //   verf: absolute error < 2e-7 everywhere (|x| < 1: x P(x^2), degree 6; |x| >= 1:
 //         1 - exp(-x^2) Q(1/|x|) with Q a degree-7 fit of erfcx on [1, 4]; beyond 4 erf = 1 in float).
 #pragma once
@@ -89,9 +91,20 @@ static inline __attribute__((always_inline)) vf vexp2_unclamped(vf t) {
 constexpr float LOG2E = 1.44269504088896341f;
 
 // exp(x) with x clamped to [-80, 80] (exp(-80) = 1.8e-35 is still a normal float: no slow subnormal path).
-// Relative error < 3e-7 (the rounding of x log2(e) dominates for large |x|).
+// Cody-Waite: x = n ln2 + r with ln2 split in an exact high part and a remainder, so r is accurate for
+// large |x| too; e^r on |r| <= ln2/2 by a degree-5 polynomial (max relative error 7.5e-8), Estrin form.
 static inline __attribute__((always_inline)) vf vexp(vf x) {
-    return vexp2_unclamped(vmin(vmax(x, splat(-80.f)), splat(80.f)) * splat(LOG2E));
+    x = vmin(vmax(x, splat(-80.f)), splat(80.f));
+    const vf shifter = splat(12582912.f + 127.f);
+    const vf biased = x * splat(LOG2E) + shifter;
+    const vf n = biased - shifter;
+    const vf r = (x - n * splat(0.693359375f)) - n * splat(-2.12194440e-4f);
+    const vf r2 = r * r;
+    const vf p01 = splat(9.999996919357242e-1f) * r + splat(1.0000000716534307f);
+    const vf p23 = splat(1.6667574918421377e-1f) * r + splat(4.999889485966238e-1f);
+    const vf p45 = splat(8.297642317540248e-3f) * r + splat(4.191538128558668e-2f);
+    const vf p = p01 + r2 * (p23 + r2 * p45);
+    return p * (vf)((vu)biased << 23);
 }
 
 // erf(x); also returns exp(-x^2) (the derivative up to 2/sqrt(pi)), which the backward reuses.

@@ -1,0 +1,327 @@
+"""The compiled CPU backend (mipslam/render/cpu): equal to the torch reference, robust, deterministic,
+portable build and a clean fallback when it cannot be built (issue 3, "Backends")."""
+from __future__ import annotations
+
+import logging
+import math
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+import torch
+
+from mipslam.errors import BackendUnavailableError
+from mipslam.render import MODES, rasterize
+from mipslam.render import cpu as cpu_backend
+from mipslam.geometry.se3 import se3_exp
+
+
+@pytest.fixture(scope="module")
+def ext():
+    if not cpu_backend.is_available():
+        pytest.skip(f"the cpu backend cannot be built here: {cpu_backend.unavailable_reason()}")
+    return cpu_backend.load_extension()
+
+
+def camera(width, height, focal, dtype=torch.float32):
+    K = torch.tensor([[focal, 0.0, (width - 1) / 2 + 0.3], [0.0, focal * 1.1, (height - 1) / 2 - 0.2],
+                      [0.0, 0.0, 1.0]], dtype=dtype)
+    xi = torch.tensor([0.02, -0.03, 0.05, 0.04, -0.02, 0.03], dtype=torch.float64)
+    return se3_exp(xi).to(dtype), K  # a general T_cw, so every viewmat entry matters
+
+
+def mixed_scene(n, width, height, focal, seed=0):
+    """Gaussians in front of :func:`camera`: sub-pixel (sigma 0.05-0.5 px), pixel-sized to several
+    pixels, and elongated (one axis 10-30x), with random rotations, opacities and colours."""
+    g = torch.Generator().manual_seed(seed)
+    z = 1.5 + 1.5 * torch.rand(n, generator=g)
+    u = (torch.rand(n, generator=g) * 1.2 - 0.1) * width
+    v = (torch.rand(n, generator=g) * 1.2 - 0.1) * height
+    means = torch.stack([(u - width / 2) * z / focal, (v - height / 2) * z / focal, z], -1)
+    kind = torch.rand(n, generator=g)
+    sigma_px = torch.where(kind < 0.35, 0.05 + 0.45 * torch.rand(n, generator=g),
+                           0.7 + 3.0 * torch.rand(n, generator=g))
+    scales = (sigma_px * z / focal)[:, None] * (0.6 + 0.8 * torch.rand(n, 3, generator=g))
+    elongated = kind > 0.8
+    scales[elongated, 0] *= 10 + 20 * torch.rand(int(elongated.sum()), generator=g)
+    quats = torch.randn(n, 4, generator=g)
+    opacities = 0.05 + 0.93 * torch.rand(n, generator=g)
+    colors = torch.rand(n, 3, generator=g)
+    return [means, quats, scales, opacities, colors]
+
+
+def render_with_grads(scene, viewmat, K, width, height, backend, mode, **options):
+    inputs = [t.clone().requires_grad_() for t in scene] + [viewmat.clone().requires_grad_()]
+    out = rasterize(*inputs, K, width, height, mode=mode, backend=backend, **options)
+    g = torch.Generator().manual_seed(7)
+    loss = (out.color * torch.rand(out.color.shape, generator=g)).sum() \
+        + (out.depth * torch.randn(out.depth.shape, generator=g)).sum() \
+        + (out.alpha * torch.randn(out.alpha.shape, generator=g)).sum()
+    loss.backward()
+    return out, [t.grad for t in inputs]
+
+
+def cosine(a, b):
+    return float(torch.nn.functional.cosine_similarity(a.flatten().double(), b.flatten().double(), dim=0))
+
+
+INPUT_NAMES = ("means", "quats", "scales", "opacities", "colors", "viewmat")
+
+
+def assert_backends_agree(scene, viewmat, K, width, height, mode, **options):
+    out_t, grads_t = render_with_grads(scene, viewmat, K, width, height, "torch", mode, **options)
+    out_c, grads_c = render_with_grads(scene, viewmat, K, width, height, "cpu", mode, **options)
+    assert out_c.backend == "cpu" and out_t.backend == "torch"
+    assert out_t.alpha.max() > 0.5, "the scene should cover the image"
+    for name in ("color", "depth", "alpha"):
+        diff = (getattr(out_c, name) - getattr(out_t, name)).abs().max().item()
+        assert diff <= 1e-4, f"{mode}: {name} differs by {diff}"
+    for name, gt, gc in zip(INPUT_NAMES, grads_t, grads_c):
+        assert gc is not None and torch.isfinite(gc).all(), f"{mode}: gradient of {name} missing or not finite"
+        assert gt.abs().max() > 0, f"{mode}: the reference gradient of {name} is zero (test is vacuous)"
+        assert cosine(gt, gc) >= 0.999, f"{mode}: gradient of {name} has cosine {cosine(gt, gc):.6f}"
+    return out_t, out_c
+
+
+# --- the SIMD maths --------------------------------------------------------------------------------
+def test_vector_exp_and_erf_are_accurate(ext):
+    x = torch.linspace(-80.0, 80.0, 200_001)
+    rel = ((ext.vector_math(x, 0).double() - torch.exp(x.double())) / torch.exp(x.double())).abs().max().item()
+    assert rel < 5e-7
+    x = torch.linspace(-6.0, 6.0, 120_001)
+    err = (ext.vector_math(x, 1).double() - torch.erf(x.double())).abs().max().item()
+    assert err < 3e-7
+    assert torch.isfinite(ext.vector_math(torch.tensor([-1e30, -1e4, 1e4, 1e30]), 0)).all()  # clamped
+
+
+# --- equality with the torch reference -------------------------------------------------------------
+CASES = [
+    ("point", {}),
+    ("mip", {}),
+    ("ewa", {}),
+    ("eaa", {}),
+    ("eaa", {"eaa_eta": 2.0, "eaa_tau": 0.25, "eaa_max_nodes": 10, "eaa_point_area": 1.0}),
+    ("point", {"filter_3d_scale": 0.2}),
+    ("eaa", {"filter_3d_scale": 0.2, "eaa_eta": 1.0}),
+]
+
+
+@pytest.mark.parametrize("mode,options", CASES, ids=[f"{m}-{i}" for i, (m, _) in enumerate(CASES)])
+def test_cpu_equals_torch_images_and_gradients(ext, mode, options):
+    width, height, focal = 32, 24, 30.0
+    viewmat, K = camera(width, height, focal)
+    assert_backends_agree(mixed_scene(100, width, height, focal, seed=1), viewmat, K, width, height, mode, **options)
+
+
+def test_cpu_equals_torch_exact_mode(ext):
+    width, height, focal = 16, 12, 14.0
+    viewmat, K = camera(width, height, focal)
+    assert_backends_agree(mixed_scene(30, width, height, focal, seed=2), viewmat, K, width, height, "exact",
+                          exact_order=5)
+
+
+@pytest.mark.parametrize("channels", [1, 4])
+def test_other_channel_counts(ext, channels):
+    width, height, focal = 20, 14, 18.0
+    viewmat, K = camera(width, height, focal)
+    scene = mixed_scene(40, width, height, focal, seed=3)
+    scene[4] = torch.rand(40, channels, generator=torch.Generator().manual_seed(4))
+    out_t, out_c = assert_backends_agree(scene, viewmat, K, width, height, "point")
+    assert out_c.color.shape == (height, width, channels)
+
+
+def test_unsupported_calls_fall_back_on_auto_and_raise_on_cpu(ext):
+    width, height, focal = 16, 12, 14.0
+    viewmat, K = camera(width, height, focal, dtype=torch.float64)
+    scene = [t.double() for t in mixed_scene(20, width, height, focal)]
+    assert rasterize(*scene, viewmat, K, width, height, backend="auto").backend == "torch"
+    with pytest.raises(BackendUnavailableError, match="float32"):
+        rasterize(*scene, viewmat, K, width, height, backend="cpu")
+    scene32 = [t.float() for t in scene]
+    scene32[4] = torch.rand(20, 2)
+    with pytest.raises(BackendUnavailableError, match="colour channels"):
+        rasterize(*scene32, viewmat.float(), K.float(), width, height, backend="cpu")
+    assert rasterize(*[t.float() for t in scene], viewmat.float(), K.float(), width, height).backend == "cpu"
+
+
+# --- pose-only backward ----------------------------------------------------------------------------
+@pytest.mark.parametrize("mode", ["point", "mip", "eaa"])
+def test_pose_only_gives_the_same_pose_gradient(ext, mode):
+    width, height, focal = 24, 18, 22.0
+    viewmat, K = camera(width, height, focal)
+    scene = mixed_scene(60, width, height, focal, seed=5)
+    _, grads_full = render_with_grads(scene, viewmat, K, width, height, "cpu", mode)
+    _, grads_pose = render_with_grads(scene, viewmat, K, width, height, "cpu", mode, pose_only=True)
+    _, grads_torch = render_with_grads(scene, viewmat, K, width, height, "torch", mode, pose_only=True)
+    assert all(g is None for g in grads_pose[:5])
+    assert torch.allclose(grads_pose[5], grads_full[5], rtol=1e-5, atol=1e-6)
+    assert cosine(grads_pose[5], grads_torch[5]) >= 0.999
+
+
+# --- numerical extremes ----------------------------------------------------------------------------
+NAN, INF = float("nan"), float("inf")
+
+
+def extreme_scene():
+    rows = [  # mean xyz, quat wxyz, scales xyz, opacity
+        ((0.0, 0.0, 2.0), (1, 0, 0, 0), (0.05, 0.05, 0.05), 0.7),
+        ((0.1, -0.1, 3.0), (0.9, 0.1, 0.2, 0.3), (0.2, 0.01, 0.1), 0.5),
+        ((0.0, 0.0, -1.0), (1, 0, 0, 0), (0.1, 0.1, 0.1), 0.9),  # behind the camera
+        ((0.0, 0.0, 0.01), (1, 0, 0, 0), (0.1, 0.1, 0.1), 0.9),  # on the near plane
+        ((0.0, 0.0, 1e-6), (1, 0, 0, 0), (0.1, 0.1, 0.1), 0.9),  # depth 1e-6
+        ((1e5, 0.0, 1e6), (1, 0, 0, 0), (1.0, 1.0, 1.0), 0.9),  # depth 1e6
+        ((0.0, 0.1, 1.0), (1, 0, 0, 0), (1e-8, 1e-8, 1e-8), 1.0),  # scale 1e-8
+        ((0.0, 0.0, 5.0), (1, 0, 0, 0), (1e3, 1e3, 1e3), 0.3),  # scale 1e3
+        ((0.05, 0.0, 2.0), (0.8, 0.3, -0.2, 0.4), (1e-3, 1e3, 1.0), 0.6),  # anisotropy 1e6
+        ((0.02, 0.02, 2.0), (0.7, 0.1, 0.7, 0.1), (1e-6, 1.0, 0.1), 0.8),  # anisotropy 1e6
+        ((-0.1, 0.05, 2.0), (1, 0, 0, 0), (0.05, 0.05, 0.05), 0.0),  # opacity 0
+        ((0.1, 0.05, 2.5), (1, 0, 0, 0), (0.05, 0.05, 0.05), 1.0),  # opacity 1
+        ((0.0, 0.0, 2.0), (0, 0, 0, 0), (0.05, 0.05, 0.05), 0.9),  # zero quaternion
+        ((NAN, 0.0, 2.0), (1, 0, 0, 0), (0.05, 0.05, 0.05), 0.9),
+        ((0.0, INF, 2.0), (1, 0, 0, 0), (0.05, 0.05, 0.05), 0.9),
+        ((0.0, 0.0, 2.0), (NAN, 0, 0, 0), (0.05, 0.05, 0.05), 0.9),
+        ((0.0, 0.0, 2.0), (1, 0, 0, 0), (INF, 0.05, 0.05), 0.9),
+        ((0.0, 0.0, 2.0), (1, 0, 0, 0), (0.05, 0.05, 0.05), NAN),
+        ((1e30, 1e30, 1e30), (1, 0, 0, 0), (1e30, 1e30, 1e30), 0.9),
+    ]
+    scene = [torch.tensor([r[i] for r in rows], dtype=torch.float32) for i in range(4)]
+    colors = torch.rand(len(rows), 3, generator=torch.Generator().manual_seed(0))
+    colors[1, 2] = NAN
+    return scene + [colors]
+
+
+def assert_finite_render(scene, width, height, focal, mode, **options):
+    K = torch.tensor([[focal, 0.0, (width - 1) / 2], [0.0, focal, (height - 1) / 2], [0.0, 0.0, 1.0]])
+    inputs = [t.clone().requires_grad_() for t in scene] + [torch.eye(4).requires_grad_()]
+    out = rasterize(*inputs, K, width, height, mode=mode, backend="cpu", **options)
+    (out.color.sum() + out.depth.sum() + out.alpha.sum()).backward()
+    for name in ("color", "depth", "alpha"):
+        assert torch.isfinite(getattr(out, name)).all(), f"{mode}: {name} not finite"
+    assert (out.alpha >= 0).all() and (out.alpha <= 1 + 1e-6).all()
+    for name, t in zip(INPUT_NAMES, inputs):
+        assert torch.isfinite(t.grad).all(), f"{mode}: gradient of {name} not finite"
+    reference = rasterize(*scene, torch.eye(4), K, width, height, mode=mode, backend="torch", **options)
+    assert (out.color - reference.color).abs().max() <= 1e-4
+    return out
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_extremes_give_finite_images_and_gradients(ext, mode):
+    out = assert_finite_render(extreme_scene(), 16, 12, 10.0, mode, exact_order=4)
+    assert out.alpha.max() > 0.5
+
+
+@pytest.mark.parametrize("focal", [1.0, 1e5])
+def test_extreme_focal_lengths(ext, focal):
+    assert_finite_render(extreme_scene(), 20, 10, focal, "eaa")
+
+
+@pytest.mark.parametrize("size", [(1, 1), (1, 7), (9, 1), (1920, 1080)])
+def test_image_sizes_from_one_pixel_to_full_hd(ext, size):
+    width, height = size
+    out = assert_finite_render([t[:3] for t in extreme_scene()], width, height, max(width, height) / 2 + 20, "eaa")
+    assert out.color.shape == (height, width, 3) and out.alpha.max() > 0
+
+
+@pytest.mark.parametrize("n", [0, 1])
+def test_zero_and_one_gaussian(ext, n):
+    out = assert_finite_render([t[:n] for t in extreme_scene()], 8, 6, 5.0, "point")
+    assert (out.alpha.sum() > 0) == (n == 1)
+
+
+# --- determinism -----------------------------------------------------------------------------------
+def test_backward_is_deterministic_and_independent_of_the_thread_count(ext):
+    width, height, focal = 48, 40, 40.0
+    viewmat, K = camera(width, height, focal)
+    scene = mixed_scene(300, width, height, focal, seed=6)
+    threads = torch.get_num_threads()
+    try:
+        results = []
+        for n_threads in (threads, threads, 1, 3):
+            torch.set_num_threads(n_threads)
+            results.append(render_with_grads(scene, viewmat, K, width, height, "cpu", "eaa"))
+    finally:
+        torch.set_num_threads(threads)
+    (out0, grads0) = results[0]
+    for out, grads in results[1:]:
+        assert torch.equal(out.color, out0.color)
+        for g, g0 in zip(grads, grads0):
+            assert torch.equal(g, g0)
+
+
+# --- build: portability, vectorisation, fallback ---------------------------------------------------
+def test_build_flags_are_portable():
+    cflags, _ = cpu_backend.build_flags()
+    assert not any(f.startswith("-march") or f.startswith("-mtune=native") for f in cflags
+                   if f not in cpu_backend.os.environ.get("MIPSLAM_CPU_CFLAGS", "").split())
+    assert ("-mavx2" in cflags) == cpu_backend._cpu_has_avx2_fma()
+    assert "-ffast-math" not in cflags  # the kernels rely on IEEE comparisons and the exp rounding trick
+
+
+def test_kernels_are_vectorised_and_call_no_libm(ext):
+    objdump = shutil.which("objdump")
+    if objdump is None:
+        pytest.skip("objdump (binutils) is not installed")
+    info = ext.build_info()
+    disassembly = subprocess.run([objdump, "-d", "--no-show-raw-insn", "-C", ext.__file__], capture_output=True,
+                                 text=True, check=True, timeout=120).stdout
+    kernels = re.split(r"\n(?=[0-9a-f]+ <)", disassembly)
+    tile_kernels = [k for k in kernels if re.match(r"[0-9a-f]+ <[^>]*(forward|backward)_tile", k)]
+    assert len(tile_kernels) >= 6
+    register = "%ymm" if "avx2" in info else "%xmm"
+    for body in tile_kernels:
+        assert register in body
+        assert not re.search(r"call\s+\S+\s+<[^>]*(exp|erf)", body), "a tile kernel calls libm exp/erf"
+        # packed single-precision FMAs/multiplies: the per-pixel maths (exp polynomial included) is SIMD
+        assert re.search(r"\tv?(vfmadd\S*ps|mulps|vmulps)\s", body)
+
+
+@pytest.fixture
+def fresh_loader(monkeypatch):
+    """Let a test fail the build; the real extension is restored afterwards."""
+    saved = dict(cpu_backend._state)
+    cpu_backend._reset_for_tests()
+    yield monkeypatch
+    cpu_backend._state.clear()
+    cpu_backend._state.update(saved)
+
+
+def test_failed_build_warns_once_and_falls_back_to_torch(fresh_loader, caplog):
+    def failing_build():
+        raise RuntimeError("Error building extension 'mipslam_raster': g++: fatal error")
+
+    fresh_loader.setattr(cpu_backend, "_build", failing_build)
+    width, height, focal = 16, 12, 14.0
+    viewmat, K = camera(width, height, focal)
+    scene = mixed_scene(10, width, height, focal)
+    with caplog.at_level(logging.WARNING, logger="mipslam.render.cpu"):
+        assert not cpu_backend.is_available()
+        assert rasterize(*scene, viewmat, K, width, height, backend="auto").backend == "torch"
+        assert rasterize(*scene, viewmat, K, width, height, backend="auto").backend == "torch"
+        with pytest.raises(BackendUnavailableError, match="g\\+\\+: fatal error"):
+            rasterize(*scene, viewmat, K, width, height, backend="cpu")
+    warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "torch backend" in warnings[0].getMessage()
+
+
+def test_missing_compiler_is_reported(fresh_loader):
+    fresh_loader.setenv("CXX", "/nonexistent/c++")
+    assert not cpu_backend.is_available()
+    assert "no C++ compiler" in cpu_backend.unavailable_reason()
+
+
+def test_disabled_by_environment(fresh_loader):
+    fresh_loader.setenv("MIPSLAM_CPU_BACKEND", "0")
+    assert not cpu_backend.is_available()
+    assert "MIPSLAM_CPU_BACKEND" in cpu_backend.unavailable_reason()
+
+
+def test_cache_key_follows_sources_and_flags(tmp_path):
+    compiler = cpu_backend._compiler() or "c++"
+    base = cpu_backend._build_key(["-O3"], [], compiler)
+    assert cpu_backend._build_key(["-O3", "-mavx2"], [], compiler) != base
+    assert cpu_backend._build_key(["-O3"], [], compiler) == base
+    assert Path(cpu_backend.cache_root()).name == "torch_extensions"
+    assert math.isfinite(len(base)) and len(base) == 16
