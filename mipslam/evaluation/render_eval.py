@@ -552,7 +552,7 @@ def _protocol(context: RunRenderContext, options: RenderEvalOptions, modes, scal
             "intrinsics": "mapping intrinsics .scaled(scale): f' = s f, c' = s (c + 0.5) - 0.5, size round(s W) x round(s H)",
         },
         "modes": list(modes),
-        "renderer": {"backend": render_cfg.backend, "filter_3d": render_cfg.filter_3d,
+        "renderer": {"run_mode": render_cfg.mode, "backend": render_cfg.backend, "filter_3d": render_cfg.filter_3d,
                      "eaa_max_nodes": render_cfg.eaa_max_nodes, "eaa_gamma": render_cfg.eaa_gamma,
                      "eaa_eta": render_cfg.eaa_eta, "eaa_tau": render_cfg.eaa_tau,
                      "eaa_k_sigma": render_cfg.eaa_k_sigma, "near_plane": render_cfg.near_plane},

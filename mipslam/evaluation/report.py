@@ -401,7 +401,8 @@ def _html(metrics: dict, timings: dict | None, images: dict[str, Path], loops, r
     ]
     render_rows = (render or {}).get("rows", [])
     if render_rows:
-        main = min(render_rows, key=lambda r: (abs(math.log(r["scale"])), r["mode"] != render_rows[0]["mode"]))
+        run_mode = render.get("protocol", {}).get("renderer", {}).get("run_mode", render_rows[0]["mode"])
+        main = min(render_rows, key=lambda r: (abs(math.log(r["scale"])), r["mode"] != run_mode))
         headline.append((f"render x{main['scale']:g} ({main['mode']})",
                          f"PSNR {_fmt(main['psnr'], '.2f', ' dB')}, SSIM {main['ssim']:.4f}, "
                          f"LPIPS {_fmt(main.get('lpips'), '.4f')}, depth L1 {_fmt(main.get('depth_l1') and main['depth_l1'] * 100, '.2f', ' cm')}"))
