@@ -103,13 +103,53 @@ def _plan_batches(tile_counts: torch.Tensor, pixels_per_tile: int, work_per_pair
     return batches
 
 
+def batch_pixel_opacity(settings: FootprintSettings, pix_x, pix_y, mean_x, mean_y, cov_xx, cov_xy, cov_yy,
+                        cov_det, opacity, node_counts) -> torch.Tensor:
+    """Per-pixel opacity of a batch: pix_* [B, P, 1], per-Gaussian [B, 1, L] -> [B, P, L].
+
+    Centre-sample modes are evaluated densely (one exp per pair). For ``eaa`` and ``exact`` the costly
+    rule runs only on the pairs inside the Gaussian's support box (outside it the value is 0 by
+    definition) and, for ``eaa``, only for Gaussians with 2 or more nodes; the 1-node Gaussians take
+    the dense centre sample. The sparse values are placed with an out-of-place ``index_put``.
+    """
+    if settings.mode not in ("eaa", "exact"):
+        return footprint.pixel_opacity(settings.mode, pix_x, pix_y, mean_x, mean_y, cov_xx, cov_xy, cov_yy,
+                                       cov_det, opacity, k_sigma=settings.k_sigma)
+    if settings.mode == "eaa":
+        dense = footprint.centre_sample_opacity(pix_x, pix_y, mean_x, mean_y, cov_xx, cov_xy, cov_yy, cov_det,
+                                                opacity, settings.k_sigma)
+        dense = torch.where(node_counts <= 1, dense, torch.zeros_like(dense))
+        k = settings.k_sigma
+    else:
+        dense = torch.zeros(torch.broadcast_shapes(pix_x.shape, mean_x.shape), dtype=pix_x.dtype,
+                            device=pix_x.device)
+        k = footprint.EXACT_K_SIGMA
+    with torch.no_grad():
+        need = ((pix_x - mean_x).abs() <= k * torch.sqrt(cov_xx) + 0.5) \
+            & ((pix_y - mean_y).abs() <= k * torch.sqrt(cov_yy) + 0.5)
+        if settings.mode == "eaa":
+            need &= node_counts >= 2
+        b, p, l = torch.nonzero(need, as_tuple=True)
+    if b.numel() == 0:
+        return dense
+    zero = torch.zeros_like(b)
+    pix = (b, p, zero)
+    gauss = (b, zero, l)
+    args = (pix_x[pix], pix_y[pix], mean_x[gauss], mean_y[gauss], cov_xx[gauss], cov_xy[gauss], cov_yy[gauss],
+            cov_det[gauss], opacity[gauss])
+    if settings.mode == "eaa":
+        values = footprint.eaa_pixel_opacity(*args, node_counts[gauss], row_capacity=settings.max_nodes,
+                                             k_sigma=settings.k_sigma, eta=settings.eta, tau=settings.tau)
+    else:
+        values = footprint.exact_pixel_opacity(*args, order=settings.exact_order)
+    return dense.index_put((b, p, l), values)
+
+
 def _render_batch(settings: FootprintSettings, pix_x, pix_y, mean_x, mean_y, cov_xx, cov_xy, cov_yy, cov_det,
                   opacity, depth, colors, node_counts):
     """One batch of tiles: pix_* [B, P, 1]; per-Gaussian [B, 1, L]; colors [B, L, C] -> [B, P, C+2]."""
-    a = footprint.pixel_opacity(
-        settings.mode, pix_x, pix_y, mean_x, mean_y, cov_xx, cov_xy, cov_yy, cov_det, opacity, node_counts,
-        k_sigma=settings.k_sigma, row_capacity=settings.max_nodes, eta=settings.eta, tau=settings.tau,
-        exact_order=settings.exact_order)  # [B, P, L]
+    a = batch_pixel_opacity(settings, pix_x, pix_y, mean_x, mean_y, cov_xx, cov_xy, cov_yy, cov_det, opacity,
+                            node_counts)  # [B, P, L]
     color, depth_img, alpha = composite(a, colors.unsqueeze(1), depth)
     return torch.cat([color, depth_img.unsqueeze(-1), alpha.unsqueeze(-1)], -1)
 
@@ -140,11 +180,11 @@ def rasterize_projected(proj: ProjectedGaussians, width: int, height: int, setti
         node_counts = footprint.eaa_node_counts(cov_xx, cov_xy, cov_yy, cov_det, max_nodes=settings.max_nodes,
                                                 gamma=settings.gamma, point_area=settings.point_area)
         row_capacity = int(node_counts.max()) if node_counts.numel() else 1
-        work = max(1, row_capacity) * 2
+        work = max(1, row_capacity)  # rows run on the support pairs only (a fraction of the dense pairs)
     else:
         node_counts = torch.ones_like(ids)
         row_capacity = 1
-        work = settings.exact_order ** 2 if settings.mode == "exact" else 1
+        work = max(1, settings.exact_order ** 2 // 4) if settings.mode == "exact" else 1
     settings_batch = FootprintSettings(**{**settings.__dict__, "max_nodes": max(1, row_capacity)})
 
     box_modes = ("eaa", "exact")
