@@ -1,8 +1,19 @@
-"""Geometric verification of a loop candidate: register two keyframes' RGB-D point clouds (Open3D).
+"""Geometric verification of a loop candidate: register two keyframes' RGB-D data (Open3D).
 
-``register_rgbd_pair`` back-projects both keyframes (camera frames, metres), down-samples them
-on a voxel grid coarse to fine, and runs point-to-plane or coloured ICP (Park et al. 2017)
-initialised from the current estimate of the relative pose. Conventions:
+``register_rgbd_pair`` aligns keyframe j to keyframe i, initialised from the current estimate of
+the relative pose, with one of three methods:
+
+* ``point_to_plane`` / ``colored``: back-project both keyframes (camera frames, metres),
+  down-sample them on a voxel grid coarse to fine and run point-to-plane or coloured ICP
+  (Park et al. 2017);
+* ``rgbd_odometry``: dense direct RGB-D alignment on image pyramids (Open3D's
+  ``compute_rgbd_odometry`` with the hybrid photometric + depth Jacobian, Steinbruecker et al.
+  2011 / Park et al. 2017), then the same point-cloud checks at the result. Point-to-plane ICP
+  slides along the large planes of a room (a wall seen head-on constrains only 3 of 6 degrees of
+  freedom) while still reporting a high fitness; the photometric term pins the sliding directions
+  wherever the surfaces are textured (docs/pgo.md, "Verification in the SLAM loop").
+
+Conventions:
 
 * keyframe i is the *target*, keyframe j the *source*; the result ``T_ij`` maps camera-j points
   into camera i (``p_i = T_ij p_j``), i.e. it measures ``T_i^-1 T_j`` - exactly the measurement
@@ -40,6 +51,7 @@ logger = logging.getLogger(__name__)
 
 # Open3D orders a twist (rotation, translation); this project orders it (rho = translation, phi = rotation).
 _O3D_TO_RHO_PHI = np.r_[3, 4, 5, 0, 1, 2]
+_GREY = (0.299, 0.587, 0.114)
 
 
 def _open3d():
@@ -58,9 +70,11 @@ def _open3d():
 class RegistrationOptions:
     """Settings of :func:`register_rgbd_pair` (lengths in metres)."""
 
-    method: Literal["point_to_plane", "colored"] = "point_to_plane"
-    voxel_sizes: tuple[float, ...] = (0.04, 0.02)  # coarse to fine
+    method: Literal["point_to_plane", "colored", "rgbd_odometry"] = "point_to_plane"
+    voxel_sizes: tuple[float, ...] = (0.04, 0.02)  # coarse to fine (the finest one also for the checks)
     iterations: tuple[int, ...] = (30, 20)  # ICP iterations per scale
+    odometry_iterations: tuple[int, ...] = (20, 10, 5)  # rgbd_odometry: per pyramid level, coarse to fine
+    odometry_depth_difference_m: float = 0.07  # rgbd_odometry: largest depth difference of a correspondence
     correspondence_factor: float = 2.0  # max correspondence distance = factor x voxel size
     pixel_stride: int = 2
     min_depth_m: float = 0.1
@@ -76,8 +90,11 @@ class RegistrationOptions:
     def __post_init__(self):
         if not self.voxel_sizes or len(self.voxel_sizes) != len(self.iterations):
             raise ValueError("RegistrationOptions: voxel_sizes and iterations need one entry per scale")
-        if self.method not in ("point_to_plane", "colored"):
-            raise ValueError(f"RegistrationOptions.method must be 'point_to_plane' or 'colored', got {self.method!r}")
+        if self.method not in ("point_to_plane", "colored", "rgbd_odometry"):
+            raise ValueError("RegistrationOptions.method must be 'point_to_plane', 'colored' or 'rgbd_odometry', "
+                             f"got {self.method!r}")
+        if not self.odometry_iterations or min(self.odometry_iterations) < 1:
+            raise ValueError("RegistrationOptions.odometry_iterations needs at least one level, each >= 1 iteration")
 
 
 @dataclass(frozen=True)
@@ -153,7 +170,10 @@ def register_point_clouds(source, target, T_ij_init: torch.Tensor, options: Regi
     """Register Open3D clouds: source = keyframe j, target = keyframe i, both in their camera frames.
 
     T_ij_init: initial guess of T_i^-1 T_j  # [4, 4]
+    ``options.method`` must be an ICP variant (dense alignment needs the images: :func:`register_rgbd_pair`).
     """
+    if options.method == "rgbd_odometry":
+        raise ValueError("register_point_clouds runs ICP; dense RGB-D alignment needs the images, use register_rgbd_pair")
     o3d = _open3d()
     reg = o3d.pipelines.registration
     start = time.perf_counter()
@@ -182,27 +202,96 @@ def register_point_clouds(source, target, T_ij_init: torch.Tensor, options: Regi
                                           reg.TransformationEstimationPointToPlane(), criteria)
         current = np.asarray(result.transformation)
 
-    T_ij = torch.as_tensor(current.copy(), dtype=torch.float64)
+    return _verify(src_down, tgt_down, T_ij_init, np.asarray(current), max_distance, options, start,
+                   (float(result.fitness), float(result.inlier_rmse), len(result.correspondence_set)))
+
+
+def _verify(source, target, T_ij_init: torch.Tensor, T_ij_np: np.ndarray, max_distance: float,
+            options: RegistrationOptions, start: float, measured: tuple[float, float, int] | None = None) -> RegistrationResult:
+    """Acceptance checks and information of a registered pair (clouds already down-sampled).
+
+    measured: (fitness, inlier RMSE, correspondences) where the registration computed them; else
+    Open3D's ``evaluate_registration`` at ``T_ij_np`` with ``max_distance``.
+    """
+    o3d = _open3d()
+    reg = o3d.pipelines.registration
+    T_ij = torch.as_tensor(T_ij_np.copy(), dtype=torch.float64)
+    if not bool(torch.isfinite(T_ij).all()):
+        return _rejected(T_ij_init.detach().to(torch.float64).cpu(), 0.0, math.inf, 0, math.inf, math.inf,
+                         "registration diverged (non-finite pose)", start)
+    if measured is None:
+        evaluation = reg.evaluate_registration(source, target, max_distance, T_ij_np)
+        measured = (float(evaluation.fitness), float(evaluation.inlier_rmse), len(evaluation.correspondence_set))
+    fitness, rmse, n = measured
     change = torch.linalg.inv(T_ij_init.detach().to(torch.float64).cpu()) @ T_ij
     correction_m = float(change[:3, 3].norm())
     correction_deg = float(torch.rad2deg(rotation_angle(change[:3, :3])))
-    fitness, rmse = float(result.fitness), float(result.inlier_rmse)
-    n = len(result.correspondence_set)
     reasons = []
     if fitness < options.fitness_threshold:
         reasons.append(f"fitness {fitness:.3f} < {options.fitness_threshold}")
     if n == 0 or rmse > options.rmse_threshold:
         reasons.append(f"inlier RMSE {rmse:.4f} m > {options.rmse_threshold} m")
     if correction_m > options.max_correction_m or correction_deg > options.max_correction_deg:
-        reasons.append(f"ICP moved {correction_m:.3f} m / {correction_deg:.1f} deg from the initial guess")
+        reasons.append(f"registration moved {correction_m:.3f} m / {correction_deg:.1f} deg from the initial guess")
     if reasons:
         return _rejected(T_ij, fitness, rmse, n, correction_m, correction_deg, "; ".join(reasons), start)
 
-    info_o3d = np.asarray(reg.get_information_matrix_from_point_clouds(src_down, tgt_down, max_distance, current))
+    info_o3d = np.asarray(reg.get_information_matrix_from_point_clouds(source, target, max_distance, T_ij_np))
     scale = min(1.0, options.max_independent_points / max(n, 1)) / options.point_sigma_m**2
     information = information_from_open3d(torch.as_tensor(info_o3d), T_ij) * scale
     return RegistrationResult(T_ij, information, fitness, rmse, n, correction_m, correction_deg, True, "",
                               time.perf_counter() - start)
+
+
+def _open3d_rgbd(o3d, color: torch.Tensor, depth: torch.Tensor, options: RegistrationOptions):
+    """Open3D RGBDImage (grey intensity in [0, 1], depth in metres) of one frame.  color [H, W, 3], depth [H, W]"""
+    grey = (color.detach().to(torch.float32).cpu() @ torch.tensor(_GREY)).contiguous().numpy()
+    z = depth.detach().to(torch.float32).cpu().contiguous().numpy()
+    return o3d.geometry.RGBDImage.create_from_color_and_depth(
+        o3d.geometry.Image(grey), o3d.geometry.Image(z), depth_scale=1.0, depth_trunc=options.max_depth_m,
+        convert_rgb_to_intensity=False)
+
+
+def register_rgbd_odometry(
+    color_i: torch.Tensor,
+    depth_i: torch.Tensor,
+    color_j: torch.Tensor,
+    depth_j: torch.Tensor,
+    intrinsics: Intrinsics,
+    T_ij_init: torch.Tensor,
+    options: RegistrationOptions = RegistrationOptions(method="rgbd_odometry"),
+) -> RegistrationResult:
+    """Dense RGB-D alignment of keyframe j (source) to keyframe i (target), then the point-cloud checks.
+
+    color_* [H, W, 3] in [0, 1], depth_* [H, W] metres, T_ij_init [4, 4] = current T_i^-1 T_j.
+    Fitness and inlier RMSE are Open3D's ``evaluate_registration`` of the clouds (finest voxel,
+    correspondence distance ``correspondence_factor`` x voxel) at the aligned pose.
+    """
+    o3d = _open3d()
+    start = time.perf_counter()
+    kw = dict(pixel_stride=options.pixel_stride, min_depth_m=options.min_depth_m, max_depth_m=options.max_depth_m)
+    target = rgbd_point_cloud(color_i, depth_i, intrinsics, **kw)
+    source = rgbd_point_cloud(color_j, depth_j, intrinsics, **kw)
+    if min(len(source.points), len(target.points)) < options.min_points:
+        n = min(len(source.points), len(target.points))
+        return _rejected(T_ij_init.to(torch.float64).cpu(), 0.0, math.inf, 0, 0.0, 0.0,
+                         f"too few valid depth points ({n} < {options.min_points})", start)
+    camera = o3d.camera.PinholeCameraIntrinsic(intrinsics.width, intrinsics.height, intrinsics.fx, intrinsics.fy,
+                                               intrinsics.cx, intrinsics.cy)
+    odometry = o3d.pipelines.odometry
+    option = odometry.OdometryOption(
+        iteration_number_per_pyramid_level=o3d.utility.IntVector(list(options.odometry_iterations)),
+        depth_diff_max=options.odometry_depth_difference_m, depth_min=options.min_depth_m, depth_max=options.max_depth_m)
+    init = T_ij_init.detach().to(torch.float64).cpu().numpy()
+    success, T_ij_np, _ = odometry.compute_rgbd_odometry(
+        _open3d_rgbd(o3d, color_j, depth_j, options), _open3d_rgbd(o3d, color_i, depth_i, options), camera, init,
+        odometry.RGBDOdometryJacobianFromHybridTerm(), option)
+    if not success:
+        return _rejected(T_ij_init.detach().to(torch.float64).cpu(), 0.0, math.inf, 0, 0.0, 0.0,
+                         "dense RGB-D alignment failed (too few correspondences)", start)
+    voxel = options.voxel_sizes[-1]
+    return _verify(source.voxel_down_sample(voxel), target.voxel_down_sample(voxel), T_ij_init, np.asarray(T_ij_np),
+                   options.correspondence_factor * voxel, options, start)
 
 
 def register_rgbd_pair(
@@ -214,14 +303,18 @@ def register_rgbd_pair(
     T_ij_init: torch.Tensor,
     options: RegistrationOptions = RegistrationOptions(),
 ) -> RegistrationResult:
-    """Verify a loop between keyframes i (target) and j (source) by ICP on their RGB-D clouds.
+    """Verify a loop between keyframes i (target) and j (source): ICP on their RGB-D clouds, or
+    dense RGB-D alignment (``options.method``), then the acceptance checks.
 
     color_* [H, W, 3] in [0, 1], depth_* [H, W] metres, T_ij_init [4, 4] = current T_i^-1 T_j.
     """
-    kw = dict(pixel_stride=options.pixel_stride, min_depth_m=options.min_depth_m, max_depth_m=options.max_depth_m)
-    target = rgbd_point_cloud(color_i, depth_i, intrinsics, **kw)
-    source = rgbd_point_cloud(color_j, depth_j, intrinsics, **kw)
-    result = register_point_clouds(source, target, T_ij_init, options)
+    if options.method == "rgbd_odometry":
+        result = register_rgbd_odometry(color_i, depth_i, color_j, depth_j, intrinsics, T_ij_init, options)
+    else:
+        kw = dict(pixel_stride=options.pixel_stride, min_depth_m=options.min_depth_m, max_depth_m=options.max_depth_m)
+        target = rgbd_point_cloud(color_i, depth_i, intrinsics, **kw)
+        source = rgbd_point_cloud(color_j, depth_j, intrinsics, **kw)
+        result = register_point_clouds(source, target, T_ij_init, options)
     logger.debug("loop verification: fitness %.3f, rmse %.4f m, accepted=%s %s", result.fitness,
                  result.inlier_rmse_m, result.accepted, result.reason)
     return result
