@@ -184,10 +184,21 @@ class MappingConfig:
 
 @dataclass(frozen=True)
 class LoopConfig:
-    enabled: bool = True
-    min_keyframe_gap: int = 10
-    icp_fitness_threshold: float = 0.3
-    icp_rmse_threshold: float = 0.05
+    """Loop closure and SA-PGO (docs/pgo.md): detection, verification, pose graph, map correction."""
+
+    enabled: bool = True  # false: no loop stage at all (the run is exactly the one without it)
+    min_keyframe_gap: int = 10  # a loop candidate is at least this many keyframes older than the query
+    registration: Literal["rgbd_odometry", "point_to_plane", "colored"] = "rgbd_odometry"
+    icp_fitness_threshold: float = 0.3  # verification: fraction of points with a correspondence
+    icp_rmse_threshold: float = 0.05  # verification: inlier RMSE, metres
+    icp_voxel_m: float = 0.02  # finest voxel of ICP and of the fitness/RMSE checks (ICP starts at 2x)
+    icp_pixel_stride: int = 2  # every n-th pixel of each keyframe goes into the point clouds
+    # odometry edge (keyframe k-1 -> k) standard deviation: floor + drift_ratio * distance (rotation)
+    # travelled since keyframe k-1, divided by sqrt(tracking quality), quality = running tracking
+    # loss / this keyframe's loss, in [0.1, 1]
+    odometry_sigma_m: float = 0.01
+    odometry_sigma_deg: float = 0.5
+    odometry_drift_ratio: float = 0.05
     spectral_edge_weighting: bool = True
     low_frequency_correction: bool = True
     num_eigenvectors: int = 16
@@ -196,6 +207,14 @@ class LoopConfig:
     def __post_init__(self):
         _check(self.min_keyframe_gap >= 1, "loop.min_keyframe_gap", "must be >= 1")
         _check(self.num_eigenvectors >= 1, "loop.num_eigenvectors", "must be >= 1")
+        _check(self.full_iterations >= 0, "loop.full_iterations", "must be >= 0")
+        _check(0 <= self.icp_fitness_threshold <= 1, "loop.icp_fitness_threshold", "must be in [0, 1]")
+        _check(self.icp_rmse_threshold > 0, "loop.icp_rmse_threshold", "must be positive (metres)")
+        _check(self.icp_voxel_m > 0, "loop.icp_voxel_m", "must be positive (metres)")
+        _check(self.icp_pixel_stride >= 1, "loop.icp_pixel_stride", "must be >= 1")
+        _check(self.odometry_sigma_m > 0, "loop.odometry_sigma_m", "must be positive (metres)")
+        _check(self.odometry_sigma_deg > 0, "loop.odometry_sigma_deg", "must be positive (degrees)")
+        _check(self.odometry_drift_ratio >= 0, "loop.odometry_drift_ratio", "must be >= 0")
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,5 @@
 """Writes a run's outputs (DESIGN.md "Outputs of a run"): trajectories, keyframes, per-frame tracking
-record, map, timings and a description of the run. Every file is written atomically."""
+record, map, timings, loop closures and a description of the run. Every file is written atomically."""
 from __future__ import annotations
 
 import math
@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from mipslam import __version__
-from mipslam.config import Config
+from mipslam.config import Config, config_to_dict
 from mipslam.datasets import RGBDSequence
 from mipslam.io.ply import write_map_ply
 from mipslam.io.run_folder import RunFolder, write_json_atomic
@@ -49,6 +49,7 @@ def write_run_outputs(folder: RunFolder, state: SLAMState, sequence: RGBDSequenc
     })
     write_map_ply(folder.map_ply, state.gaussian_map)
     write_json_atomic(folder.timings, timing_summary(state))
+    write_json_atomic(folder.loops, loop_summary(state, config))
     intrinsics = sequence.intrinsics
     write_json_atomic(folder.root / RUN_INFO, {
         "mipslam_version": __version__,
@@ -63,6 +64,62 @@ def write_run_outputs(folder: RunFolder, state: SLAMState, sequence: RGBDSequenc
         "device": str(state.gaussian_map.device),
         "torch_threads": torch.get_num_threads(),
     })
+
+
+def loop_summary(state: SLAMState, config: Config) -> dict:
+    """loops.json: every loop candidate with its verification, every pose-graph optimisation, and totals."""
+    log = state.loop_log
+    optimisations = log["optimisations"]
+    return {
+        "enabled": config.loop.enabled,
+        "settings": config_to_dict(config.loop),
+        "columns": {
+            "loops": "every candidate pair (older keyframe i, query keyframe j) and its final status; accepted = "
+                     "a loop edge of the final pose graph",
+            "candidates": "query/candidate keyframe and frame, descriptor similarity, distance and view angle in the "
+                          "current estimate, verification fitness and inlier RMSE (m), how far registration moved the "
+                          "initial guess, accepted (became a loop edge) or the reason for the rejection",
+            "optimisations": "per keyframe that added loop edges: graph size, cost before/after (robust, on the edges "
+                             "kept), LM iterations, pruned loop edges [i, j], final weight and chi2 of every loop edge, "
+                             "whether the correction was applied and why, largest keyframe correction, map PSNR at the "
+                             "loop's keyframes before/after the correction (dB), seconds",
+        },
+        "summary": {
+            "keyframes": len(state.keyframe_frames),
+            "candidates": len(log["candidates"]),
+            "verified": sum(bool(c["accepted"]) for c in log["candidates"]),
+            "optimisations": len(optimisations),
+            "corrections_applied": sum(bool(o["applied"]) for o in optimisations),
+            "pruned_loop_edges": sum(len(o["pruned_edges"]) for o in optimisations),
+            "loop_edges_in_graph": int(state.loop.graph.edge_is_loop.sum()),
+            "pgo_seconds": sum(o["time_s"] for o in optimisations),
+        },
+        "loops": loop_list(state),
+        "candidates": log["candidates"],
+        "optimisations": optimisations,
+    }
+
+
+def loop_list(state: SLAMState) -> list[dict]:
+    """Every loop candidate with its final status: ``accepted`` when its edge is in the final pose graph;
+    otherwise rejected by verification or pruned by the pose-graph optimisation."""
+    graph = state.loop.graph
+    in_graph = {tuple(pair) for pair in graph.edge_nodes[graph.edge_is_loop].tolist()}
+    pruned = {tuple(pair) for o in state.loop_log["optimisations"] for pair in o["pruned_edges"]}
+    rows = []
+    for c in state.loop_log["candidates"]:
+        pair = (c["candidate_keyframe"], c["query_keyframe"])
+        if not c["accepted"]:
+            status = "rejected by verification: " + c["reason"]
+        elif pair in in_graph:
+            status = "loop edge in the pose graph"
+        elif pair in pruned:
+            status = "pruned by the pose-graph optimisation (disagrees with the other edges)"
+        else:
+            status = "verified, not in the final graph"
+        rows.append({"keyframe_i": pair[0], "keyframe_j": pair[1], "frame_i": c["candidate_frame"],
+                     "frame_j": c["query_frame"], "accepted": pair in in_graph, "status": status})
+    return rows
 
 
 def timing_summary(state: SLAMState) -> dict:

@@ -1,9 +1,10 @@
-"""The only frame loop: frame -> tracking -> keyframe decision -> mapping -> record -> checkpoint.
+"""The only frame loop: frame -> tracking -> keyframe decision -> mapping -> loop closure -> record -> checkpoint.
 
 :func:`run_slam` builds the stages (each from its own config section), restores or creates the
 :class:`~mipslam.state.SLAMState`, runs :func:`process_frame` on every frame, and writes the run
 folder (DESIGN.md "Outputs of a run"). Single process, deterministic for a seed on CPU; a
-checkpoint every ``run.checkpoint_every`` frames, at the end, and on Ctrl-C.
+checkpoint every ``run.checkpoint_every`` frames, at the end, and on Ctrl-C. With
+``loop.enabled: false`` the loop-closure stage is not built and nothing of it runs.
 """
 from __future__ import annotations
 
@@ -12,8 +13,9 @@ import math
 import time
 from collections import OrderedDict
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Callable
 
 import torch
 from tqdm import tqdm
@@ -22,9 +24,14 @@ from mipslam.checkpoint import load_latest_checkpoint, save_checkpoint
 from mipslam.config import Config, config_to_dict, config_to_yaml
 from mipslam.datasets import RGBDSequence, make_sequence
 from mipslam.errors import CheckpointError, ConfigError
+from mipslam.evaluation.image_metrics import psnr
+from mipslam.geometry import se3_inverse
 from mipslam.io.run_folder import RunFolder, write_json_atomic, write_text_atomic
 from mipslam.keyframes import covisibility, decide_keyframe, select_random_past, update_window_from_config
+from mipslam.losses.photometric import apply_affine_exposure
+from mipslam.loop.closer import KeyframeView, LoopCloser, LoopStep, VerificationHook, path_motion, tracking_quality
 from mipslam.mapping import Mapper, MappingResult, MappingView
+from mipslam.rendering import render_view
 from mipslam.state import FrameRecord, SLAMState, update_running_loss
 from mipslam.tracking import Tracker, TrackingResult, constant_velocity_prediction, initial_result
 from mipslam.types import Frame
@@ -80,20 +87,39 @@ class FrameCache:
         return frame
 
 
+@dataclass(frozen=True)
+class PipelineHooks:
+    """Fault injection for tests and benchmarks; a normal run has none.
+
+    after_tracking(frame index, tracking result, state) -> result: replaces a frame's tracking
+        result before anything else sees it (e.g. a biased odometer that makes the run drift);
+    loop_verification(candidate keyframe, query keyframe, result) -> result: replaces a loop
+        verification (e.g. a deliberately wrong loop edge).
+    """
+
+    after_tracking: Callable[[int, TrackingResult, SLAMState], TrackingResult] | None = None
+    loop_verification: VerificationHook | None = None
+
+
 @dataclass
 class Stages:
-    """The stages of one run, each built from its own config section."""
+    """The stages of one run, each built from its own config section (``loop`` is None when disabled)."""
 
     config: Config
     tracker: Tracker
     mapper: Mapper
     frames: FrameCache
+    loop: LoopCloser | None = None
+    hooks: PipelineHooks = field(default_factory=PipelineHooks)
 
     @classmethod
-    def build(cls, config: Config, sequence: RGBDSequence, device: torch.device) -> "Stages":
+    def build(cls, config: Config, sequence: RGBDSequence, device: torch.device,
+              hooks: PipelineHooks | None = None) -> "Stages":
+        hooks = hooks or PipelineHooks()
         capacity = config.keyframes.window_size + config.keyframes.random_past + 2
+        loop = LoopCloser(config.loop, verification_hook=hooks.loop_verification) if config.loop.enabled else None
         return cls(config, Tracker(config.tracking, config.render), Mapper(config.mapping, config.render),
-                   FrameCache(sequence, device, capacity))
+                   FrameCache(sequence, device, capacity), loop, hooks)
 
 
 @contextmanager
@@ -106,10 +132,12 @@ def _timed(state: SLAMState, stage: str):
 # ----------------------------------------------------------------------------- one frame
 
 def process_frame(stages: Stages, state: SLAMState, index: int, timestamp: float, T_wc_first: torch.Tensor) -> FrameRecord:
-    """Track, decide, map and record one frame; returns its record (also appended to ``state``)."""
+    """Track, decide, map, close loops and record one frame; returns its record (also appended to ``state``)."""
     frame = stages.frames[index]
     with _timed(state, "tracking"):
         tracked = track(stages, state, frame, T_wc_first)
+        if stages.hooks.after_tracking is not None:
+            tracked = stages.hooks.after_tracking(index, tracked, state)
     with _timed(state, "keyframe"):
         decision = decide_keyframe(stages.config.keyframes, frame.depth, tracked.T_wc, frame.intrinsics.matrix(),
                                    *_last_keyframe(stages, state)) if tracked.ok else None
@@ -121,6 +149,8 @@ def process_frame(stages: Stages, state: SLAMState, index: int, timestamp: float
     with _timed(state, "mapping"):
         if is_keyframe:
             map_keyframe(stages, state, record)
+    if stages.loop is not None:
+        close_loops(stages, state, is_keyframe)
     if tracked.status == "ok":
         state.running_loss = update_running_loss(state.running_loss, tracked.loss)
     state.gaussian_counts.append(len(state.gaussian_map))
@@ -138,7 +168,23 @@ def track(stages: Stages, state: SLAMState, frame: Frame, T_wc_first: torch.Tens
     gaussians = state.gaussian_map.activated()
     detached = type(gaussians)(*(t.detach() for t in (gaussians.means, gaussians.quats, gaussians.scales,
                                                        gaussians.opacities, gaussians.colors)))
-    return stages.tracker.track(detached, frame, prediction, state.running_loss)
+    result = stages.tracker.track(detached, frame, prediction, state.running_loss)
+    return replace(result, T_wc=nearest_rigid(result.T_wc))
+
+
+def nearest_rigid(T_wc: torch.Tensor) -> torch.Tensor:
+    """The rigid transform nearest to ``T_wc`` (rotation block projected onto SO(3) by SVD), float64.
+
+    T_wc [4, 4] -> [4, 4]. Tracking and mapping compose poses in the map's float32; their 1e-7
+    departures from orthonormality would otherwise grow through the constant-velocity prediction
+    ``T_prev T_prev2^-1 T_prev`` (which inverts by transposition) by a factor ~2.4 per frame.
+    """
+    T = T_wc.to(torch.float64).clone()
+    U, _, Vh = torch.linalg.svd(T[:3, :3])
+    d = torch.sign(torch.linalg.det(U @ Vh))
+    T[:3, :3] = U @ torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d])) @ Vh
+    T[3] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
+    return T
 
 
 def _last_keyframe(stages: Stages, state: SLAMState):
@@ -168,7 +214,7 @@ def map_keyframe(stages: Stages, state: SLAMState, record: FrameRecord) -> Mappi
     result = stages.mapper.map_keyframe(state.gaussian_map, state.optimizer, views, iterations=iterations,
                                         generator=state.generator, frame_index=record.index)
     for keyframe_id, T_wc in result.refined_T_wc:
-        state.set_keyframe_pose(keyframe_id, T_wc)
+        state.set_keyframe_pose(keyframe_id, nearest_rigid(T_wc))
     return result
 
 
@@ -179,10 +225,77 @@ def _mapping_view(stages: Stages, state: SLAMState, keyframe_id: int) -> Mapping
                        frame.intrinsics, optimize_pose=keyframe_id != 0)
 
 
+# ----------------------------------------------------------------------------- loop closure
+
+def close_loops(stages: Stages, state: SLAMState, is_keyframe: bool) -> LoopStep | None:
+    """The loop-closure stage on a new keyframe (:class:`~mipslam.loop.closer.LoopCloser`); an applied
+    correction moves the keyframes, the other frames and the map. Times "loop" and "pgo" on every frame."""
+    start = time.perf_counter()
+    step = None
+    if is_keyframe:
+        keyframe_id = state.last_keyframe_id()
+        record = state.keyframe_record(keyframe_id)
+        since = state.keyframe_frames[keyframe_id - 1] if keyframe_id > 0 else len(state.frames) - 1
+        path_m, path_rad = path_motion(torch.stack([f.T_wc for f in state.frames[since:]]))
+        odometry = (path_m, path_rad, tracking_quality(record.tracking_loss, state.running_loss))
+        step = stages.loop.process_keyframe(state.loop, _keyframe_view(stages, state, keyframe_id),
+                                            state.keyframe_poses(), odometry,
+                                            lambda other: _keyframe_view(stages, state, other))
+        state.loop = step.state
+        state.loop_log["candidates"].extend(c.to_dict() for c in step.candidates)
+        if step.optimisation is not None:
+            entry = step.optimisation.to_dict()
+            if step.corrected_T_wc is not None:
+                entry.update(correct_map(stages, state, step))
+            state.loop_log["optimisations"].append(entry)
+    pgo_seconds = step.pgo_seconds if step is not None else 0.0
+    state.add_timing("loop", time.perf_counter() - start - pgo_seconds)
+    state.add_timing("pgo", pgo_seconds)
+    return step
+
+
+def correct_map(stages: Stages, state: SLAMState, step: LoopStep) -> dict:
+    """Apply an accepted pose-graph correction and measure the map before and after it.
+
+    The check renders the map at the loop's keyframes (the query and its loop partners; their
+    current poses) and compares with their images: PSNR in dB before and after the correction.
+    """
+    check = sorted({step.optimisation.query_keyframe, *(i for i, _ in step.optimisation.new_loop_edges)})
+    start = time.perf_counter()
+    before = [_keyframe_psnr(stages, state, k) for k in check]
+    moved = state.correct_keyframe_poses(step.corrected_T_wc)
+    after = [_keyframe_psnr(stages, state, k) for k in check]
+    log.info("loop correction at keyframe %d: moved %d Gaussians; map PSNR at keyframes %s %.2f -> %.2f dB",
+             step.optimisation.query_keyframe, moved, check, sum(before) / len(before), sum(after) / len(after))
+    return {"gaussians_moved": moved, "psnr_keyframes": check, "psnr_before_db": before, "psnr_after_db": after,
+            "map_correction_s": time.perf_counter() - start}
+
+
+def _keyframe_view(stages: Stages, state: SLAMState, keyframe_id: int) -> KeyframeView:
+    record = state.keyframe_record(keyframe_id)
+    frame = stages.frames[record.index]
+    return KeyframeView(keyframe_id, record.index, frame.color, frame.depth, frame.intrinsics)
+
+
+@torch.no_grad()
+def _keyframe_psnr(stages: Stages, state: SLAMState, keyframe_id: int) -> float:
+    record = state.keyframe_record(keyframe_id)
+    frame = stages.frames[record.index]
+    gmap = state.gaussian_map
+    out = render_view(gmap.activated(), se3_inverse(record.T_wc).to(device=gmap.device, dtype=gmap.dtype),
+                      frame.intrinsics, stages.config.render)
+    exposure = record.exposure.to(out.color)
+    return float(psnr(apply_affine_exposure(out.color, exposure[0], exposure[1]).clamp(0, 1), frame.color))
+
+
 # ----------------------------------------------------------------------------- the run
 
-def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evaluate: bool = True) -> RunSummary:
-    """Run SLAM on the configured sequence into ``run_dir`` (resuming from its last good checkpoint)."""
+def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evaluate: bool = True,
+             hooks: PipelineHooks | None = None) -> RunSummary:
+    """Run SLAM on the configured sequence into ``run_dir`` (resuming from its last good checkpoint).
+
+    ``hooks``: fault injection for tests and benchmarks (:class:`PipelineHooks`); None in normal runs.
+    """
     folder = RunFolder(run_dir).create()
     folder.remove_stale_temporaries()
     sequence = make_sequence(config.dataset)
@@ -191,7 +304,7 @@ def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evalu
         torch.set_num_threads(config.run.threads)
     state = _restore(folder, config, device) if resume else SLAMState.initial(config.mapping, config.run.seed, device)
     write_text_atomic(folder.config_yaml, config_to_yaml(config))
-    stages = Stages.build(config, sequence, device)
+    stages = Stages.build(config, sequence, device, hooks)
     T_wc_first = _first_pose(sequence)
     started, start_frame = time.perf_counter(), state.next_frame
     bar = tqdm(range(state.next_frame, len(sequence)), desc="mipslam", unit="frame", initial=state.next_frame,

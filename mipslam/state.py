@@ -2,7 +2,9 @@
 
 Per processed frame a frozen :class:`FrameRecord`; the keyframes (id -> frame position), the
 window, the map with its optimizer state, the run's random generator, the running tracking loss,
-per-stage timings and the Gaussian count over time. :meth:`SLAMState.to_checkpoint` gives plain
+per-stage timings, the Gaussian count over time, and the loop-closure state (pose graph and
+keyframe descriptors, :class:`~mipslam.loop.closer.LoopState`) with its log of candidates and
+optimisations. :meth:`SLAMState.to_checkpoint` gives plain
 tensors plus JSON metadata (no pickled objects); :meth:`SLAMState.from_checkpoint` is its inverse.
 """
 from __future__ import annotations
@@ -16,8 +18,10 @@ import torch
 from mipslam.checkpoint import capture_rng_state, restore_rng_state, select_prefix, with_prefix
 from mipslam.config import MappingConfig
 from mipslam.gaussians import GaussianMap, GaussianOptimizer
+from mipslam.geometry import se3_inverse
+from mipslam.loop.closer import LoopState
 
-STATE_VERSION = 1
+STATE_VERSION = 2  # 2: loop-closure state (pose graph, descriptors, loop log)
 
 
 @dataclass(frozen=True)
@@ -55,6 +59,8 @@ class SLAMState:
     running_loss: float | None = None
     timings: dict[str, list[float]] = field(default_factory=dict)  # stage -> seconds per frame
     gaussian_counts: list[int] = field(default_factory=list)
+    loop: LoopState = field(default_factory=LoopState.empty)
+    loop_log: dict[str, list[dict[str, Any]]] = field(default_factory=lambda: {"candidates": [], "optimisations": []})
 
     @classmethod
     def initial(cls, mapping_config: MappingConfig, seed: int, device: torch.device) -> "SLAMState":
@@ -85,6 +91,36 @@ class SLAMState:
         position = self.keyframe_frames[keyframe_id]
         self.frames[position] = replace(self.frames[position], T_wc=T_wc.to(torch.float64).cpu())
 
+    def keyframe_poses(self) -> torch.Tensor:
+        """Current poses of all keyframes, by keyframe id.  -> [K, 4, 4] float64"""
+        if not self.keyframe_frames:
+            return torch.zeros(0, 4, 4, dtype=torch.float64)
+        return torch.stack([self.frames[p].T_wc.to(torch.float64) for p in self.keyframe_frames])
+
+    def correct_keyframe_poses(self, T_wc_new: torch.Tensor) -> int:
+        """Apply a pose-graph correction: keyframes take their new poses, every other frame keeps its
+        pose relative to its reference keyframe, and every Gaussian moves with its anchor keyframe.
+
+        T_wc_new: corrected poses of all keyframes   # [K, 4, 4]
+        With ``C_k = T_new_k inv(T_old_k)``: a non-keyframe tracked after keyframe r becomes
+        ``C_r T_wc`` (frames without a reference keyframe stay), and
+        :meth:`GaussianMap.transform_by_anchor` applies ``C`` to the map. Returns how many Gaussians moved.
+        """
+        T_old = self.keyframe_poses()
+        if T_wc_new.shape != T_old.shape:
+            raise ValueError(f"correction for {tuple(T_wc_new.shape)} keyframe poses, the state has {tuple(T_old.shape)}")
+        T_new = T_wc_new.detach().to(dtype=torch.float64, device="cpu")
+        corrections = T_new @ se3_inverse(T_old)  # [K, 4, 4]
+        for position, record in enumerate(self.frames):
+            if record.keyframe_id >= 0:
+                T = T_new[record.keyframe_id].clone()
+            elif record.reference_keyframe >= 0:
+                T = corrections[record.reference_keyframe] @ record.T_wc.to(torch.float64)
+            else:
+                continue
+            self.frames[position] = replace(record, T_wc=T)
+        return self.gaussian_map.transform_by_anchor(corrections)
+
     def add_timing(self, stage: str, seconds: float) -> None:
         self.timings.setdefault(stage, []).append(float(seconds))
 
@@ -106,6 +142,7 @@ class SLAMState:
             "window": torch.tensor(self.window, dtype=torch.int64),
             **with_prefix("map", {k: v.detach().cpu() for k, v in self.gaussian_map.state_dict().items()}),
             **with_prefix("optim", {k: v.detach().cpu() for k, v in self.optimizer.state_dict().items()}),
+            **with_prefix("loop", self.loop.state_dict()),
         }
         rng_tensors, rng_meta = capture_rng_state({"run": self.generator})
         tensors.update(rng_tensors)
@@ -117,6 +154,7 @@ class SLAMState:
             "timings": self.timings,
             "gaussian_counts": self.gaussian_counts,
             "rng": rng_meta,
+            "loop_log": self.loop_log,
         }
         return tensors, metadata
 
@@ -156,6 +194,9 @@ class SLAMState:
             running_loss=None if running is None else float(running),
             timings={k: list(map(float, v)) for k, v in metadata["timings"].items()},
             gaussian_counts=[int(v) for v in metadata["gaussian_counts"]],
+            loop=LoopState.from_state_dict(select_prefix("loop", tensors)),
+            loop_log={"candidates": list(metadata["loop_log"]["candidates"]),
+                      "optimisations": list(metadata["loop_log"]["optimisations"])},
         )
 
 

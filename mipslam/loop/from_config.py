@@ -29,5 +29,7 @@ def candidate_options(config: LoopConfig, base: CandidateOptions = CandidateOpti
 
 
 def registration_options(config: LoopConfig, base: RegistrationOptions = RegistrationOptions()) -> RegistrationOptions:
-    """ICP acceptance thresholds from the config."""
-    return replace(base, fitness_threshold=config.icp_fitness_threshold, rmse_threshold=config.icp_rmse_threshold)
+    """Verification method, acceptance thresholds, voxel sizes (finest and 2x) and pixel stride from the config."""
+    return replace(base, method=config.registration, fitness_threshold=config.icp_fitness_threshold,
+                   rmse_threshold=config.icp_rmse_threshold, voxel_sizes=(2 * config.icp_voxel_m, config.icp_voxel_m),
+                   pixel_stride=config.icp_pixel_stride)

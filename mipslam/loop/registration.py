@@ -73,7 +73,7 @@ class RegistrationOptions:
     method: Literal["point_to_plane", "colored", "rgbd_odometry"] = "point_to_plane"
     voxel_sizes: tuple[float, ...] = (0.04, 0.02)  # coarse to fine (the finest one also for the checks)
     iterations: tuple[int, ...] = (30, 20)  # ICP iterations per scale
-    odometry_iterations: tuple[int, ...] = (20, 10, 5)  # rgbd_odometry: per pyramid level, coarse to fine
+    odometry_iterations: tuple[int, ...] = (40, 20, 10)  # rgbd_odometry: per pyramid level, coarse to fine
     odometry_depth_difference_m: float = 0.07  # rgbd_odometry: largest depth difference of a correspondence
     correspondence_factor: float = 2.0  # max correspondence distance = factor x voxel size
     pixel_stride: int = 2

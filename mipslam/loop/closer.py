@@ -1,0 +1,357 @@
+"""The loop-closure stage of the frame loop: pose graph, loop detection, verification and SA-PGO.
+
+:class:`LoopCloser` is built from the ``loop:`` config section alone. The pipeline calls
+:meth:`LoopCloser.process_keyframe` after mapping on every keyframe k (docs/pgo.md, "Loop closure
+in the SLAM loop"):
+
+1. the keyframe becomes node k of the pose graph, with an odometry edge (k-1, k) whose
+   measurement is the current relative pose ``T_{k-1}^-1 T_k`` and whose information comes from
+   the distance and rotation travelled since keyframe k-1 and the tracking quality
+   (:func:`odometry_information`);
+2. its global descriptor (:func:`mipslam.loop.descriptors.global_descriptor`) is stored;
+3. loop candidates: older keyframes (at least ``min_keyframe_gap`` back) that look alike and lie
+   near in the current estimate (:func:`mipslam.loop.descriptors.select_loop_candidates`);
+4. each candidate i is verified by registering the two keyframes' RGB-D data
+   (:func:`mipslam.loop.registration.register_rgbd_pair`, keyframe i the target); an accepted
+   registration becomes a loop edge (i, k);
+5. when this keyframe added loop edges, the graph is optimised (:func:`optimize_pose_graph` with
+   :func:`mipslam.loop.from_config.pgo_options`). The odometry measurements are refreshed from the
+   current keyframe poses first, so the optimisation only distributes the loop error along the
+   chain and keeps the local structure that tracking and mapping estimated (as ORB-SLAM's
+   essential-graph optimisation does). Pruned loop edges leave the graph for good.
+6. The correction is *applied* when at least one of this keyframe's loop edges is still an inlier
+   at the solution (kept, and chi-square ``e^T Omega e`` at most the solver's ``prune_chi2``): a
+   loop that the robust kernel had to down-weight moves nothing. The pipeline then moves the
+   keyframes, the other frames and the map (:meth:`mipslam.state.SLAMState.correct_keyframe_poses`).
+
+The stage never reaches back into the pipeline: it receives the keyframe, the current keyframe
+poses and a function that loads an older keyframe's RGB-D data, and returns a :class:`LoopStep`.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import asdict, dataclass
+from typing import Any, Callable
+
+import torch
+
+from mipslam.config import LoopConfig
+from mipslam.errors import CheckpointError, MipslamError
+from mipslam.geometry import rotation_angle, se3_inverse
+from mipslam.loop.descriptors import DescriptorOptions, global_descriptor, select_loop_candidates
+from mipslam.loop.from_config import candidate_options, pgo_options, registration_options
+from mipslam.loop.pose_graph import PoseGraph
+from mipslam.loop.registration import RegistrationResult, register_rgbd_pair
+from mipslam.loop.solver import PGOResult, optimize_pose_graph
+from mipslam.types import Intrinsics
+
+logger = logging.getLogger(__name__)
+
+# Tracking quality q = running loss / keyframe loss is clamped to [MIN_QUALITY, 1]: a keyframe
+# tracked at 10x the usual loss keeps a tenth of the nominal information, never less.
+MIN_QUALITY = 0.1
+
+VerificationHook = Callable[[int, int, RegistrationResult], RegistrationResult]
+"""(candidate keyframe i, query keyframe k, verification result) -> result: fault injection for
+tests and benchmarks (e.g. a deliberately wrong loop); a normal run has none."""
+
+
+def _finite_or_none(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None
+
+
+# ----------------------------------------------------------------------------- state
+
+
+@dataclass(frozen=True)
+class LoopState:
+    """The loop-closure part of the SLAM state (it goes into the checkpoint as plain tensors).
+
+    graph: pose graph whose node k is keyframe k (poses are the estimates of the last update)
+    descriptors: global descriptor of every keyframe, float32 CPU   # [K, D]
+    """
+
+    graph: PoseGraph
+    descriptors: torch.Tensor
+
+    @staticmethod
+    def empty(descriptor_options: DescriptorOptions = DescriptorOptions()) -> "LoopState":
+        return LoopState(PoseGraph.empty(), torch.zeros(0, descriptor_options.dimension, dtype=torch.float32))
+
+    @property
+    def num_keyframes(self) -> int:
+        return int(self.descriptors.shape[0])
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """Plain tensors only (``torch.load(..., weights_only=True)`` reads them)."""
+        tensors = {f"graph.{k}": v for k, v in self.graph.state_dict().items()}
+        tensors["descriptors"] = self.descriptors.detach().cpu().clone()
+        return tensors
+
+    @staticmethod
+    def from_state_dict(tensors: dict[str, torch.Tensor]) -> "LoopState":
+        """Inverse of :meth:`state_dict`; raises CheckpointError on a missing or inconsistent entry."""
+        if "descriptors" not in tensors:
+            raise CheckpointError("loop-closure state in checkpoint lacks 'descriptors'; start a new run")
+        graph = PoseGraph.from_state_dict({k[len("graph."):]: v for k, v in tensors.items() if k.startswith("graph.")})
+        descriptors = tensors["descriptors"].to(torch.float32).cpu()
+        if descriptors.dim() != 2 or descriptors.shape[0] != graph.num_nodes:
+            raise CheckpointError(f"loop-closure state in checkpoint is inconsistent: {graph.num_nodes} pose-graph nodes "
+                                  f"but descriptors of shape {tuple(descriptors.shape)}; start a new run")
+        return LoopState(graph, descriptors)
+
+
+@dataclass(frozen=True)
+class KeyframeView:
+    """One keyframe's data as the stage reads it.  color [H, W, 3] in [0, 1], depth [H, W] metres."""
+
+    keyframe_id: int
+    frame_index: int
+    color: torch.Tensor
+    depth: torch.Tensor
+    intrinsics: Intrinsics
+
+
+# ----------------------------------------------------------------------------- reports
+
+
+@dataclass(frozen=True)
+class CandidateReport:
+    """One loop candidate and its verification (a row of loops.json)."""
+
+    query_keyframe: int
+    query_frame: int
+    candidate_keyframe: int
+    candidate_frame: int
+    similarity: float
+    distance_m: float
+    view_angle_deg: float
+    fitness: float
+    inlier_rmse_m: float | None
+    correspondences: int
+    registration_correction_m: float | None
+    registration_correction_deg: float | None
+    accepted: bool
+    reason: str
+    time_s: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class OptimisationReport:
+    """One pose-graph optimisation (a row of loops.json); the pipeline adds the map correction."""
+
+    query_keyframe: int
+    query_frame: int
+    nodes: int
+    odometry_edges: int
+    loop_edges: int
+    new_loop_edges: list[list[int]]
+    initial_cost: float | None
+    final_cost: float | None
+    iterations: int
+    subspace_iterations: int
+    converged: bool
+    pruned_edges: list[list[int]]
+    loop_edge_weights: list[dict[str, Any]]
+    applied: bool
+    reason: str
+    max_correction_m: float
+    max_correction_deg: float
+    spectral_edge_weighting: bool
+    low_frequency_correction: bool
+    time_s: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class LoopStep:
+    """What :meth:`LoopCloser.process_keyframe` decided for one keyframe.
+
+    state: the loop state after this keyframe (graph poses = corrected poses when applied)
+    corrected_T_wc: new poses of all keyframes when a correction was applied, else None   # [K, 4, 4] float64
+    pgo_seconds: time spent in the optimiser (0 when it did not run)
+    """
+
+    state: LoopState
+    candidates: tuple[CandidateReport, ...]
+    optimisation: OptimisationReport | None
+    corrected_T_wc: torch.Tensor | None
+    pgo_seconds: float
+
+
+# ----------------------------------------------------------------------------- odometry edges
+
+
+def tracking_quality(tracking_loss: float, running_loss: float | None) -> float:
+    """Quality in [MIN_QUALITY, 1]: the running tracking loss over this keyframe's loss (1 when unknown)."""
+    if running_loss is None or not math.isfinite(running_loss) or not math.isfinite(tracking_loss) or tracking_loss <= 0:
+        return 1.0
+    return float(min(1.0, max(MIN_QUALITY, running_loss / tracking_loss)))
+
+
+def path_motion(T_wc: torch.Tensor) -> tuple[float, float]:
+    """Distance and rotation travelled along a sequence of poses: sums of the per-step translation
+    (metres) and rotation angle (radians).  T_wc [F, 4, 4] (F >= 1) -> (metres, radians)"""
+    if T_wc.shape[0] < 2:
+        return 0.0, 0.0
+    T = T_wc.to(torch.float64)
+    steps = se3_inverse(T[:-1]) @ T[1:]  # [F-1, 4, 4]
+    return float(steps[:, :3, 3].norm(dim=-1).sum()), float(rotation_angle(steps[:, :3, :3]).sum())
+
+
+def odometry_information(path_m: float, path_rad: float, quality: float, sigma_m: float, sigma_deg: float,
+                         drift_ratio: float) -> torch.Tensor:
+    """Information of an odometry edge in the order [rho, phi].
+
+    path_m / path_rad: distance and rotation travelled between the two keyframes (:func:`path_motion`
+    over every frame in between, so a detour or a sweep that returns counts in full)
+    -> diag(1/s_t^2 (x3), 1/s_r^2 (x3)) * quality   # [6, 6] float64, with
+    ``s_t = sigma_m + drift_ratio * path_m`` and ``s_r = radians(sigma_deg) + drift_ratio * path_rad``:
+    odometry drifts in proportion to the motion, and a keyframe tracked with a loss above the
+    running level (quality < 1) is trusted less. The chain must be honest about its drift: a loop
+    that disagrees with it by more than ~5-7 of the chain's standard deviations is taken for an
+    outlier by the robust kernel (docs/pgo.md).
+    """
+    sigma_t = sigma_m + drift_ratio * path_m
+    sigma_r = math.radians(sigma_deg) + drift_ratio * path_rad
+    diagonal = torch.tensor([sigma_t**-2] * 3 + [sigma_r**-2] * 3, dtype=torch.float64)
+    return torch.diag(diagonal) * quality
+
+
+def refresh_odometry(graph: PoseGraph) -> PoseGraph:
+    """The graph with every odometry measurement set to the current relative pose ``T_i^-1 T_j``
+    (loop measurements unchanged): optimising it distributes only the loop errors."""
+    i, j = graph.edge_nodes[:, 0], graph.edge_nodes[:, 1]
+    current = se3_inverse(graph.poses[i]) @ graph.poses[j]  # [E, 4, 4]
+    measurements = torch.where(graph.edge_is_loop[:, None, None], graph.measurements, current)
+    return PoseGraph(graph.poses, graph.edge_nodes, measurements, graph.information, graph.edge_is_loop)
+
+
+def pose_changes(T_old: torch.Tensor, T_new: torch.Tensor) -> tuple[float, float]:
+    """Largest translation (m) and rotation (deg) of ``T_new @ inv(T_old)`` over keyframes.  [K, 4, 4] x2"""
+    if T_old.shape[0] == 0:
+        return 0.0, 0.0
+    change = T_new.to(torch.float64) @ se3_inverse(T_old.to(torch.float64))
+    return float(change[:, :3, 3].norm(dim=-1).max()), float(torch.rad2deg(rotation_angle(change[:, :3, :3])).max())
+
+
+# ----------------------------------------------------------------------------- the stage
+
+
+class LoopCloser:
+    """Loop detection, verification and SA-PGO on keyframes (reads only the ``loop:`` config section)."""
+
+    def __init__(self, config: LoopConfig, *, verification_hook: VerificationHook | None = None,
+                 descriptor_options: DescriptorOptions = DescriptorOptions()):
+        self.config = config
+        self.descriptor_options = descriptor_options
+        self.candidate_options = candidate_options(config)
+        self.registration_options = registration_options(config)
+        self.pgo_options = pgo_options(config)
+        self.verification_hook = verification_hook
+
+    def process_keyframe(
+        self,
+        state: LoopState,
+        keyframe: KeyframeView,
+        keyframe_T_wc: torch.Tensor,  # [K, 4, 4] current poses of keyframes 0..k (k = keyframe.keyframe_id)
+        odometry: tuple[float, float, float],
+        load_keyframe: Callable[[int], KeyframeView],
+    ) -> LoopStep:
+        """Add keyframe k to the graph, look for loops, verify them and optimise (module docstring).
+
+        odometry: (distance m, rotation rad travelled since keyframe k-1, tracking quality in (0, 1]),
+        the evidence for the odometry edge's information (:func:`odometry_information`).
+        """
+        k = keyframe.keyframe_id
+        if state.num_keyframes != k or state.graph.num_nodes != k or keyframe_T_wc.shape[0] != k + 1:
+            raise MipslamError(
+                f"loop closure got keyframe {k} but holds {state.num_keyframes} descriptors, {state.graph.num_nodes} "
+                f"pose-graph nodes and {keyframe_T_wc.shape[0]} poses; keyframes must reach the stage in order, once each")
+        poses = keyframe_T_wc.detach().to(dtype=torch.float64, device="cpu")
+        descriptor = global_descriptor(keyframe.color.detach(), self.descriptor_options).cpu()
+        descriptors = torch.cat([state.descriptors, descriptor[None]])
+        graph = state.graph.add_node(poses[k]).with_poses(poses)
+        if k > 0:
+            T_rel = se3_inverse(poses[k - 1]) @ poses[k]
+            cfg = self.config
+            path_m, path_rad, quality = odometry
+            information = odometry_information(path_m, path_rad, quality, cfg.odometry_sigma_m, cfg.odometry_sigma_deg,
+                                               cfg.odometry_drift_ratio)
+            graph = graph.add_edge(k - 1, k, T_rel, information, "odometry")
+
+        reports, new_edges = [], []
+        for candidate in select_loop_candidates(k, descriptors, poses, self.candidate_options):
+            i = candidate.keyframe
+            other = load_keyframe(i)
+            T_ij_init = se3_inverse(poses[i]) @ poses[k]
+            result = register_rgbd_pair(other.color, other.depth, keyframe.color, keyframe.depth, keyframe.intrinsics,
+                                        T_ij_init, self.registration_options)
+            if self.verification_hook is not None:
+                result = self.verification_hook(i, k, result)
+            reports.append(CandidateReport(
+                k, keyframe.frame_index, i, other.frame_index, candidate.similarity, candidate.distance_m,
+                candidate.view_angle_deg, result.fitness, _finite_or_none(result.inlier_rmse_m),
+                result.num_correspondences, _finite_or_none(result.correction_m),
+                _finite_or_none(result.correction_deg), result.accepted,
+                "verified: loop edge added" if result.accepted else result.reason, result.time_s))
+            if result.accepted:
+                graph = graph.add_edge(i, k, result.T_ij, result.information, "loop")
+                new_edges.append(graph.num_edges - 1)
+        if reports:
+            logger.info("keyframe %d: %d loop candidate(s), %d verified", k, len(reports), len(new_edges))
+
+        if not new_edges:
+            return LoopStep(LoopState(graph, descriptors), tuple(reports), None, None, 0.0)
+        return self._optimise(graph, descriptors, keyframe, new_edges, tuple(reports))
+
+    def _optimise(self, graph: PoseGraph, descriptors: torch.Tensor, keyframe: KeyframeView, new_edges: list[int],
+                  reports: tuple[CandidateReport, ...]) -> LoopStep:
+        graph = refresh_odometry(graph)
+        result = optimize_pose_graph(graph, self.pgo_options)
+        pruned = set(result.pruned_edges)
+        inlier_limit = self.pgo_options.prune_chi2 if self.pgo_options.prune_chi2 is not None else self.pgo_options.kernel_scale
+        inliers = [e for e in new_edges if e not in pruned and float(result.edge_chi2[e]) <= inlier_limit]
+        applied = bool(inliers) and math.isfinite(result.final_cost)
+        if applied:
+            reason = f"{len(inliers)} of {len(new_edges)} new loop edge(s) are inliers at the solution"
+        elif not math.isfinite(result.final_cost):
+            reason = "the optimisation ended with a non-finite cost"
+        else:
+            reason = (f"no new loop edge is an inlier at the solution (pruned, or chi2 above {inlier_limit:g}): "
+                      "the loop disagrees with the rest of the graph")
+        T_before = graph.poses
+        T_after = result.poses.to(torch.float64).cpu() if applied else T_before
+        max_m, max_deg = pose_changes(T_before, result.poses.to(torch.float64).cpu())
+        kept = graph.without_edges(sorted(pruned)).with_poses(T_after)
+        report = OptimisationReport(
+            query_keyframe=keyframe.keyframe_id, query_frame=keyframe.frame_index, nodes=graph.num_nodes,
+            odometry_edges=int((~graph.edge_is_loop).sum()), loop_edges=int(graph.edge_is_loop.sum()),
+            new_loop_edges=[graph.edge_nodes[e].tolist() for e in new_edges],
+            initial_cost=_finite_or_none(result.initial_cost), final_cost=_finite_or_none(result.final_cost),
+            iterations=result.iterations, subspace_iterations=result.subspace_iterations, converged=result.converged,
+            pruned_edges=[graph.edge_nodes[e].tolist() for e in result.pruned_edges],
+            loop_edge_weights=_loop_edge_summary(graph, result),
+            applied=applied, reason=reason, max_correction_m=max_m, max_correction_deg=max_deg,
+            spectral_edge_weighting=self.pgo_options.spectral_edge_weighting,
+            low_frequency_correction=self.pgo_options.low_frequency_correction, time_s=result.time_s)
+        logger.info("keyframe %d: pose graph %d nodes / %d loops, cost %.4g -> %.4g in %d iterations, pruned %s; %s",
+                    keyframe.keyframe_id, graph.num_nodes, report.loop_edges, result.initial_cost, result.final_cost,
+                    result.iterations, report.pruned_edges, "applied" if applied else "not applied: " + reason)
+        return LoopStep(LoopState(kept, descriptors), reports, report, T_after.clone() if applied else None, result.time_s)
+
+
+def _loop_edge_summary(graph: PoseGraph, result: PGOResult) -> list[dict[str, Any]]:
+    """Per loop edge: its keyframes, final robust weight and chi-square (raw information)."""
+    rows = []
+    for e in torch.nonzero(graph.edge_is_loop).ravel().tolist():
+        i, j = graph.edge_nodes[e].tolist()
+        rows.append({"edge": [i, j], "weight": float(result.loop_weights[e]),
+                     "chi2": _finite_or_none(float(result.edge_chi2[e]))})
+    return rows
