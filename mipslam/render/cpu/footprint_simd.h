@@ -200,10 +200,173 @@ struct EaaPixel {
     vf po, pi, sw, swr, avg, a_over_o, a;
     vi inside;
     vf phi[MAX_ROWS], R[MAX_ROWS], e[MAX_ROWS], eA[MAX_ROWS], eB[MAX_ROWS];
+    // outer axis = y (row-constant outer quantities): A_j = (x - ridge_j + 1/2) / (s sqrt 2) per lane and
+    // the same at x - 1 (Ap_j, shared with the left neighbour; lane 0 from a scalar), em = exp(-A^2)
+    vf A[MAX_ROWS], Ap[MAX_ROWS], emp[MAX_ROWS];
+    float phi_s[MAX_ROWS], dy_s[MAX_ROWS], u_s[MAX_ROWS];
 };
+
+// [first, v[0], ..., v[6]]: the left neighbours' values of an 8-pixel row segment.
+static inline __attribute__((always_inline)) vf shift_in_first(vf v, float first) {
+    vf r = __builtin_shuffle(v, vi{0, 0, 1, 2, 3, 4, 5, 6});
+    r[0] = first;
+    return r;
+}
+
+// outer_band for a row-constant outer coordinate po (the Band's vectors are splats). Both erf values
+// come from one vector call (no libm call per row).
+static inline __attribute__((always_inline)) Band outer_band_row(const Gauss& g, float k, float po) {
+    const float lo_pixel = po - 0.5f, lo_mean = g.mu_o - k * g.sigma_o;
+    const float hm_pixel = po + 0.5f, hm_mean = g.mu_o + k * g.sigma_o;
+    const float lo = std::max(lo_pixel, lo_mean), hm = std::min(hm_pixel, hm_mean);
+    const float hi = std::max(hm, lo);
+    const float zh = (hi - g.mu_o) * g.inv_sigma_o, zl = (lo - g.mu_o) * g.inv_sigma_o;
+    vf z = splat(zl);
+    z[0] = zh;
+    vf em;
+    const vf E = verf(z * splat(INV_SQRT2), &em);  // em = exp(-z^2 / 2)
+    Band b;
+    b.lo_from_mean = splati(lo_mean > lo_pixel ? -1 : 0);
+    b.hm_from_mean = splati(hm_mean < hm_pixel ? -1 : 0);
+    b.hi_is_lo = splati(lo > hm ? -1 : 0);
+    b.lo = splat(lo);
+    b.hi = splat(hi);
+    b.zh = splat(zh);
+    b.zl = splat(zl);
+    b.eh = splat(em[0]);
+    b.el = splat(em[1]);
+    b.mass = splat(SQRT_2PI * g.sigma_o * (0.5f * (E[0] - E[1])));
+    return b;
+}
+
+// EAA when the outer axis is y: everything that depends on the outer coordinate only (band, outer mass,
+// row positions t_j, marginal phi_j, ridge_j) is one scalar per image row, and the inner integrals of
+// neighbouring pixels share their common edge: R_j(x) = (erf(A_j(x)) - erf(A_j(x - 1))) / 2, so a row
+// segment of 8 pixels costs one vector erf per node row (plus one scalar for the left edge).
+static inline __attribute__((always_inline)) vf eaa_eval_outer_y(const Gauss& g, const Settings& S, vf px,
+                                                                 float py, EaaPixel* st) {
+    st->pi = px;
+    st->band = outer_band_row(g, S.k_sigma, py);
+    const Band& b = st->band;
+    const int n = g.nodes;
+    const float lo = b.lo[0], width = b.hi[0] - b.lo[0];
+    const float cis = g.inv_s * INV_SQRT2;
+    const float x_left = px[0] - 1.f;
+    // Row constants of all node rows, 8 rows per vector: dy_j, u_j, phi_j, ridge_j and erf / exp(-A^2) at
+    // the left edge of the segment.
+    alignas(32) float ridge_s[MAX_ROWS], e_left[MAX_ROWS], em_left[MAX_ROWS];
+    const vf lane = vf{0.f, 1.f, 2.f, 3.f, 4.f, 5.f, 6.f, 7.f};
+    for (int j0 = 0; j0 < n; j0 += LANES) {
+        const vf f = (splat((float)j0 + 0.5f) + lane) / splat((float)n);
+        const vf dy = splat(lo) + f * splat(width) - splat(g.mu_o);
+        const vf u = dy * splat(g.inv_sigma_o);
+        const vf phi = vexp(splat(-0.5f) * u * u);
+        const vf ridge = splat(g.mu_i) + splat(g.slope) * dy;
+        vf em;
+        const vf E = verf((splat(x_left + 0.5f) - ridge) * splat(cis), &em);
+        for (int l = 0; l < LANES && j0 + l < n; ++l) {
+            st->dy_s[j0 + l] = dy[l];
+            st->u_s[j0 + l] = u[l];
+            st->phi_s[j0 + l] = phi[l];
+            ridge_s[j0 + l] = ridge[l];
+            e_left[j0 + l] = E[l];
+            em_left[j0 + l] = em[l];
+        }
+    }
+    vf sw = splat(0.f), swr = splat(0.f);
+    for (int j = 0; j < n; ++j) {
+        const float ridge = ridge_s[j], phi = st->phi_s[j];
+        vf em;
+        const vf A = (px + splat(0.5f - ridge)) * splat(cis);
+        const vf E = verf(A, &em);
+        const vf R = splat(0.5f) * (E - shift_in_first(E, e_left[j]));
+        vf w = splat(phi);
+        if (S.eta != 0.f) {
+            const vf d = vabs(splat(0.5f) - vabs(splat(ridge) - px));
+            const vf e = vexp(-d * splat(1.f / S.tau));
+            st->e[j] = e;
+            w = splat(phi) * (splat(1.f) + splat(S.eta) * e);
+        }
+        st->R[j] = R;
+        st->A[j] = A;
+        st->Ap[j] = shift_in_first(A, (x_left + 0.5f - ridge) * cis);
+        st->eA[j] = em;
+        st->emp[j] = shift_in_first(em, em_left[j]);
+        sw += w;
+        swr += w * R;
+    }
+    st->sw = sw;
+    st->swr = swr;
+    st->avg = swr / vmax(sw, splat(1.17549435e-38f));
+    st->inside = vabs(px - splat(g.mu_i)) <= splat(g.inner_lim);
+    st->a_over_o = keep(st->inside, b.mass * splat(SQRT_2PI * g.s) * st->avg);
+    st->a = keep(st->inside, splat(g.opacity) * b.mass * splat(SQRT_2PI * g.s) * st->avg);
+    return st->a;
+}
+
+template <bool GRAD_OPACITY>
+static inline __attribute__((always_inline)) void eaa_grad_outer_y(const Gauss& g, const Settings& S,
+                                                                   const EaaPixel& st, vf ga, FootAcc* acc) {
+    const Band& b = st.band;
+    ga = keep(st.inside, ga);
+    if (GRAD_OPACITY) acc->go += ga * st.a_over_o;
+    const vf so = splat(g.opacity * SQRT_2PI);
+    const vf gmass = ga * so * splat(g.s) * st.avg;
+    vf gs = ga * so * b.mass * st.avg;
+    const vf gavg = ga * so * b.mass * splat(g.s);
+    const vf sw_cl = vmax(st.sw, splat(1.17549435e-38f));
+    const vf gswr = gavg / sw_cl;
+    const vf gsw = keep(st.sw >= splat(1.17549435e-38f), -(gavg * st.avg) / sw_cl);
+    const int n = g.nodes;
+    const float cis = g.inv_s * INV_SQRT2;
+    const vf two_over_sqrt_pi = splat(1.1283791670955126f);
+    // The chain from the per-lane gradients to the row scalars is linear, so it runs lane-wise with
+    // the row constants broadcast; the lanes are summed once per (Gaussian, tile).
+    vf glo = splat(0.f), ghi = splat(0.f), gmu_o = splat(0.f), gmu_i = splat(0.f), gsig = splat(0.f),
+       gslope = splat(0.f);
+    for (int j = 0; j < n; ++j) {
+        const float f = ((float)j + 0.5f) / (float)n;
+        const float phi = st.phi_s[j], dy = st.dy_s[j], u = st.u_s[j];
+        const vf R = st.R[j];
+        vf bemph = splat(1.f);
+        if (S.eta != 0.f) bemph = splat(1.f) + splat(S.eta) * st.e[j];
+        const vf w = splat(phi) * bemph;
+        const vf gw = gswr * R + gsw;
+        const vf gR = gswr * w;
+        const vf gphi = gw * bemph;
+        vf gridge = splat(0.f);
+        if (S.eta != 0.f) {  // d = |1/2 - |ridge - x||
+            const float ridge = g.mu_i + g.slope * dy;
+            const vf off = splat(ridge) - st.pi;
+            const vf gd = -(gw * splat(phi * S.eta / S.tau) * st.e[j]);
+            gridge -= gd * vsign(splat(0.5f) - vabs(off)) * vsign(off);
+        }
+        // R = (erf(A) - erf(Ap)) / 2, A = (x - ridge + 1/2) / (s sqrt 2): dA/dridge = -1/(s sqrt 2), dA/ds = -A/s
+        const vf gA = splat(0.5f) * gR * two_over_sqrt_pi * st.eA[j];
+        const vf gAp = -(splat(0.5f) * gR * two_over_sqrt_pi * st.emp[j]);
+        gridge -= (gA + gAp) * splat(cis);
+        gs -= (gA * st.A[j] + gAp * st.Ap[j]) * splat(g.inv_s);
+        // ridge = mu_i + slope dy, phi = exp(-u^2/2), u = dy / sigma, dy = t - mu_o, t = lo + f (hi - lo)
+        const vf gu = -(gphi * splat(phi * u));
+        const vf gdy = gridge * splat(g.slope) + gu * splat(g.inv_sigma_o);
+        gsig -= gu * splat(u * g.inv_sigma_o);
+        gmu_i += gridge;
+        gslope += gridge * splat(dy);
+        gmu_o -= gdy;
+        glo += gdy * splat(1.f - f);
+        ghi += gdy * splat(f);
+    }
+    outer_band_grad(g, S.k_sigma, b, glo, ghi, gmass, &gmu_o, &gsig);
+    acc->g0 += gmu_o;
+    acc->g1 += gmu_i;
+    acc->g2 += gsig;
+    acc->g3 += gslope;
+    acc->g4 += gs;
+}
 
 static inline __attribute__((always_inline)) vf eaa_eval(const Gauss& g, const Settings& S, vf px, float py,
                                                          EaaPixel* st) {
+    if (g.outer_y) return eaa_eval_outer_y(g, S, px, py, st);
     vf po, pi;
     row_frame_coords(g, px, py, &po, &pi);
     st->po = po;
@@ -252,6 +415,10 @@ static inline __attribute__((always_inline)) vf eaa_eval(const Gauss& g, const S
 template <bool GRAD_OPACITY>
 static inline __attribute__((always_inline)) void eaa_grad(const Gauss& g, const Settings& S, const EaaPixel& st,
                                                            vf ga, FootAcc* acc) {
+    if (g.outer_y) {
+        eaa_grad_outer_y<GRAD_OPACITY>(g, S, st, ga, acc);
+        return;
+    }
     const Band& b = st.band;
     ga = select(st.inside, ga, splat(0.f));
     if (GRAD_OPACITY) acc->go += ga * st.a_over_o;

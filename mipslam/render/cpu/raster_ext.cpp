@@ -313,6 +313,10 @@ static void backward_tile(const Scene& sc, int tile, const GradInputs& gin, floa
                         st += gc[c] * gin.color[p * C + c];
                     }
                     la = gin.last[p];
+                    // a pixel without incoming gradient (masked out of the loss) contributes nothing: skip it
+                    bool any = gd != 0.f || gal != 0.f;
+                    for (int c = 0; c < C; ++c) any = any || gc[c] != 0.f;
+                    if (!any) la = 0;
                 }
                 gdep[v][i] = gd;
                 galp[v][i] = gal;

@@ -1,0 +1,311 @@
+"""Speed and memory of the renderer backends (issue 3, "Speed and memory").
+
+Scene: 20k random Gaussians in front of a 320x240 pinhole camera (f = 300 px), depths 2-6 m, projected
+standard deviations 0.5-3 px (per axis, random rotations), opacities 0.1-1, random colours. Loss for the
+backward: sum(color) + 0.1 sum(depth) + sum(alpha), all inputs (viewmat included) requiring gradients.
+
+Measured in one process, interleaved (so the machine's load hits both backends alike), median of
+``--repeats`` runs (torch: ``--torch-repeats``), wall time and process CPU time:
+
+1. forward+backward, cpu vs torch, ``point`` and ``eaa`` (default options);
+2. forward rasterisation rate in ``point`` mode: Gaussian-pixel evaluations per second per thread,
+   counted two ways: the 8-pixel row segments the kernel evaluated x 8 ("lanes", the work done) and
+   the (tile, Gaussian) pairs x 256 ("tile pairs", what a 16x16 tile rasterizer resolves), both for the
+   whole forward (projection included) and for the C++ stage alone;
+3. ``eaa`` at the default node budget against ``point`` on the cpu backend (forward, forward+backward);
+4. pose-only backward (``pose_only=True``: the viewmat alone needs a gradient) against the full backward.
+
+Peak memory of one forward+backward per backend: a fresh child process renders a tiny warm-up image,
+resets the kernel's peak-RSS counter (``/proc/self/clear_refs`` <- 5), runs the full-size forward+backward
+and reports ``VmHWM`` minus the ``VmRSS`` before the run (Linux; "n/a" elsewhere).
+
+The torch backend is given its best allocator setting: the script re-executes itself with
+``MALLOC_MMAP_THRESHOLD_`` and ``MALLOC_TRIM_THRESHOLD_`` = 4 GiB unless ``--no-malloc-tuning`` (glibc
+otherwise maps and unmaps its large temporaries on every call, about 2x slower).
+
+    .venv/bin/python benchmarks/bench_render_speed.py                 # full run (several minutes)
+    .venv/bin/python benchmarks/bench_render_speed.py --quick         # smaller, for a smoke test
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+MALLOC_ENV = {"MALLOC_MMAP_THRESHOLD_": "4294967296", "MALLOC_TRIM_THRESHOLD_": "4294967296"}
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--width", type=int, default=320)
+    p.add_argument("--height", type=int, default=240)
+    p.add_argument("--gaussians", type=int, default=20000)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--repeats", type=int, default=7, help="timed runs per cpu-backend measurement")
+    p.add_argument("--torch-repeats", type=int, default=3, help="timed runs per torch-backend measurement")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--skip-torch", action="store_true", help="cpu backend only (no ratios against torch)")
+    p.add_argument("--skip-memory", action="store_true")
+    p.add_argument("--no-malloc-tuning", action="store_true")
+    p.add_argument("--quick", action="store_true", help="160x120, 5000 Gaussians, 3/1 repeats")
+    p.add_argument("--json", type=Path, default=None, help="also write the results here")
+    p.add_argument("--memory-child", choices=("cpu", "torch"), default=None, help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.quick:
+        args.width, args.height, args.gaussians, args.repeats, args.torch_repeats = 160, 120, 5000, 3, 1
+    return args
+
+
+def configure_threads(threads: int):
+    os.environ["OMP_NUM_THREADS"] = str(threads)
+    os.environ["MKL_NUM_THREADS"] = str(threads)
+    import torch
+
+    torch.set_num_threads(threads)
+    return torch
+
+
+def make_scene(torch, width: int, height: int, count: int, seed: int):
+    """(params [means, quats, scales, opacities, colors, viewmat], K) of the benchmark scene."""
+    g = torch.Generator().manual_seed(seed)
+    focal = 300.0 * width / 320.0
+    cx, cy = (width - 1) / 2, (height - 1) / 2
+    z = 2.0 + 4.0 * torch.rand(count, generator=g)
+    u = torch.rand(count, generator=g) * width - 0.5
+    v = torch.rand(count, generator=g) * height - 0.5
+    means = torch.stack([(u - cx) * z / focal, (v - cy) * z / focal, z], -1)
+    sigma_px = 0.5 + 2.5 * torch.rand(count, generator=g)
+    # per-axis factors 0.7-1.3: the projected sigmas stay within about 0.5-3 px
+    scales = (sigma_px * z / focal)[:, None] * (0.7 + 0.6 * torch.rand(count, 3, generator=g))
+    quats = torch.randn(count, 4, generator=g)
+    opacities = 0.1 + 0.9 * torch.rand(count, generator=g)
+    colors = torch.rand(count, 3, generator=g)
+    K = torch.tensor([[focal, 0.0, cx], [0.0, focal, cy], [0.0, 0.0, 1.0]])
+    return [means, quats, scales, opacities, colors, torch.eye(4)], K
+
+
+class Timer:
+    def __enter__(self):
+        self.wall, self.cpu = time.perf_counter(), time.process_time()
+        return self
+
+    def __exit__(self, *exc):
+        self.wall = time.perf_counter() - self.wall
+        self.cpu = time.process_time() - self.cpu
+
+
+def forward_backward(torch, rasterize, params, K, width, height, backend, mode, pose_only=False):
+    """One forward+backward: returns (forward Timer, backward Timer)."""
+    inputs = [t.clone().requires_grad_() for t in params]
+    with Timer() as fwd:
+        out = rasterize(*inputs[:5], inputs[5], K, width, height, mode=mode, backend=backend, pose_only=pose_only)
+        loss = out.color.sum() + 0.1 * out.depth.sum() + out.alpha.sum()
+    with Timer() as bwd:
+        loss.backward()
+    return fwd, bwd
+
+
+def median(values):
+    return statistics.median(values) if values else float("nan")
+
+
+def run_memory_child(args):
+    """Peak RSS increase (MiB) of one full-size forward+backward in this (fresh) process."""
+    torch = configure_threads(args.threads)
+    from mipslam.render import rasterize
+
+    params, K = make_scene(torch, args.width, args.height, args.gaussians, args.seed)
+    small, Ks = make_scene(torch, 32, 24, 50, args.seed)
+    forward_backward(torch, rasterize, small, Ks, 32, 24, args.memory_child, "point")  # load libraries, pools
+    status = Path("/proc/self/status")
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        before = _status_kib(status, "VmRSS")
+    except OSError:
+        print(json.dumps({"peak_mib": None}))
+        return
+    forward_backward(torch, rasterize, params, K, args.width, args.height, args.memory_child, "point")
+    peak = _status_kib(status, "VmHWM")
+    print(json.dumps({"peak_mib": (peak - before) / 1024.0}))
+
+
+def _status_kib(status: Path, key: str) -> int:
+    for line in status.read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1])
+    raise OSError(f"{key} not in {status}")
+
+
+def measure_memory(args, backend):
+    cmd = [sys.executable, __file__, "--memory-child", backend, "--width", str(args.width), "--height",
+           str(args.height), "--gaussians", str(args.gaussians), "--threads", str(args.threads), "--seed",
+           str(args.seed)]
+    result = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy(), timeout=3600, check=False)
+    if result.returncode != 0:
+        return None, result.stderr[-2000:]
+    return json.loads(result.stdout.strip().splitlines()[-1])["peak_mib"], None
+
+
+def cpu_model() -> str:
+    try:
+        for line in subprocess.run(["lscpu"], capture_output=True, text=True, timeout=10).stdout.splitlines():
+            if line.startswith("Model name"):
+                return line.split(":", 1)[1].strip()
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return platform.processor() or "unknown"
+
+
+def load_average() -> str:
+    try:
+        return " ".join(f"{x:.2f}" for x in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    if args.memory_child:
+        run_memory_child(args)
+        return 0
+    if not args.no_malloc_tuning and any(os.environ.get(k) != v for k, v in MALLOC_ENV.items()):
+        env = {**os.environ, **MALLOC_ENV}
+        return subprocess.call([sys.executable, __file__] + (argv if argv is not None else sys.argv[1:]), env=env)
+
+    torch = configure_threads(args.threads)
+    from mipslam.render import cpu as cpu_backend
+    from mipslam.render import footprint, project_gaussians, rasterize
+    from mipslam.render.rasterize_torch import FootprintSettings
+    from mipslam.render import RenderOptions
+
+    if not cpu_backend.is_available():
+        print(f"the cpu backend is not available: {cpu_backend.unavailable_reason()}")
+        return 1
+    W, H = args.width, args.height
+    params, K = make_scene(torch, W, H, args.gaussians, args.seed)
+    info = {"cpu": cpu_model(), "threads": args.threads, "torch": torch.__version__,
+            "build": cpu_backend.load_extension().build_info(), "scene": f"{W}x{H}, {args.gaussians} Gaussians",
+            "load_before": load_average(), "malloc_tuning": not args.no_malloc_tuning}
+    print(f"# {info['scene']}, {args.threads} threads, {info['cpu']}, torch {info['torch']}, "
+          f"extension [{info['build']}], load average {info['load_before']}", flush=True)
+
+    results = {}
+
+    def record(key, timers):
+        results[key] = {"wall_ms": 1e3 * median([t.wall for t in timers]), "cpu_ms": 1e3 * median([t.cpu for t in timers])}
+
+    # warm-up (builds/loads the extension, allocator pools)
+    for backend in ("cpu",) + (() if args.skip_torch else ("torch",)):
+        forward_backward(torch, rasterize, params, K, W, H, backend, "point")
+
+    # 1, 3, 4: forward+backward per (backend, mode, pose_only), interleaved
+    samples = {}
+    backends = ("cpu",) if args.skip_torch else ("cpu", "torch")
+    for r in range(max(args.repeats, args.torch_repeats)):
+        for backend in backends:
+            if backend == "torch" and r >= args.torch_repeats:
+                continue
+            if backend == "cpu" and r >= args.repeats:
+                continue
+            for mode in ("point", "eaa"):
+                for pose_only in (False, True):
+                    fwd, bwd = forward_backward(torch, rasterize, params, K, W, H, backend, mode, pose_only)
+                    samples.setdefault((backend, mode, pose_only), []).append((fwd, bwd))
+        print(f"  round {r + 1} done (load {load_average()})", flush=True)
+    for (backend, mode, pose_only), runs in samples.items():
+        tag = f"{backend}/{mode}/{'pose' if pose_only else 'full'}"
+        record(tag + "/fwd", [f for f, _ in runs])
+        record(tag + "/bwd", [b for _, b in runs])
+        total = []
+        for f, b in runs:
+            t = Timer()
+            t.wall, t.cpu = f.wall + b.wall, f.cpu + b.cpu
+            total.append(t)
+        record(tag + "/fwd+bwd", total)
+
+    # 2: forward rate, point mode (no autograd), whole call and the C++ stage alone
+    opts = RenderOptions()
+    fwd_timers, stage_timers = [], []
+    with torch.no_grad():
+        proj = project_gaussians(*params[:5], params[5], K, W, H, near_plane=opts.near_plane,
+                                 extent_sigma=opts.k_sigma)
+        settings = FootprintSettings(mode="point", k_sigma=opts.k_sigma, max_nodes=int(opts.eaa_max_nodes),
+                                     gamma=opts.eaa_gamma, eta=opts.eaa_eta, tau=opts.eaa_tau,
+                                     point_area=opts.eaa_point_area, exact_order=opts.exact_order)
+        image = cpu_backend.rasterize_projected(proj, W, H, settings)
+        for _ in range(args.repeats):
+            with Timer() as t:
+                rasterize(*params[:5], params[5], K, W, H, mode="point", backend="cpu")
+            fwd_timers.append(t)
+            with Timer() as t:
+                cpu_backend.rasterize_projected(proj, W, H, settings)
+            stage_timers.append(t)
+    record("cpu/point/forward_nograd", fwd_timers)
+    record("cpu/point/raster_stage", stage_timers)
+    lanes, pairs = image.lanes_evaluated, image.pairs
+    results["lanes_evaluated"], results["tile_pairs"] = lanes, pairs
+
+    # memory
+    memory = {}
+    if not args.skip_memory:
+        for backend in backends:
+            memory[backend], error = measure_memory(args, backend)
+            if error:
+                print(f"  memory child for {backend} failed: {error}")
+    info["load_after"] = load_average()
+
+    # report
+    def ms(key, kind="wall_ms"):
+        return results[key][kind]
+
+    lines = [f"CPU: {info['cpu']}; {args.threads} threads; torch {info['torch']}; extension built with "
+             f"[{info['build']}]; load average {info['load_before']} -> {info['load_after']}; wall-clock medians "
+             f"(process CPU time in brackets); cpu backend {args.repeats} runs, torch {args.torch_repeats}.", "",
+             "| measurement | cpu backend | torch backend | ratio | target |", "|---|---|---|---|---|"]
+    for mode in ("point", "eaa"):
+        key_c = f"cpu/{mode}/full/fwd+bwd"
+        if args.skip_torch:
+            lines.append(f"| fwd+bwd {mode} | {ms(key_c):.1f} ms ({ms(key_c, 'cpu_ms'):.0f}) | - | - | |")
+        else:
+            key_t = f"torch/{mode}/full/fwd+bwd"
+            lines.append(f"| fwd+bwd {mode} | {ms(key_c):.1f} ms ({ms(key_c, 'cpu_ms'):.0f}) | {ms(key_t):.0f} ms "
+                         f"({ms(key_t, 'cpu_ms'):.0f}) | **{ms(key_t) / ms(key_c):.1f}x** faster | >= 8x |")
+    if memory:
+        mem_c, mem_t = memory.get("cpu"), memory.get("torch")
+        fmt = (lambda m: "n/a" if m is None else f"{m:.1f} MiB")
+        ratio = f"**{mem_c / mem_t:.3f}**" if mem_c is not None and mem_t else "n/a"
+        lines.append(f"| peak RSS increase, fwd+bwd point | {fmt(mem_c)} | {fmt(mem_t)} | {ratio} | <= 0.25 |")
+    threads = args.threads
+    for key, label in (("cpu/point/forward_nograd", "whole forward"), ("cpu/point/raster_stage", "C++ stage")):
+        t = ms(key) / 1e3
+        lines.append(f"| point forward rate, {label} ({ms(key):.1f} ms) | {lanes / t / threads:.3g} lanes/s/thread; "
+                     f"{pairs * 256 / t / threads:.3g} tile-pair px/s/thread | | | >= 1e9 /s/core |")
+    for what in ("fwd", "fwd+bwd"):
+        e, p = ms(f"cpu/eaa/full/{what}"), ms(f"cpu/point/full/{what}")
+        lines.append(f"| eaa / point, {what} (cpu) | {e:.1f} / {p:.1f} ms | | **{e / p:.2f}x** | <= 1.5x |")
+    for mode in ("point", "eaa"):
+        f, p = ms(f"cpu/{mode}/full/bwd"), ms(f"cpu/{mode}/pose/bwd")
+        lines.append(f"| backward full / pose-only, {mode} (cpu) | {f:.1f} / {p:.1f} ms | | **{f / p:.2f}x** | >= 1.5x |")
+        if not args.skip_torch:
+            f, p = ms(f"torch/{mode}/full/bwd"), ms(f"torch/{mode}/pose/bwd")
+            lines.append(f"| backward full / pose-only, {mode} (torch) | | {f:.0f} / {p:.0f} ms | {f / p:.2f}x | |")
+    lines.append("")
+    lines.append(f"Counts: {lanes} lanes evaluated, {pairs} (tile, Gaussian) pairs = {pairs * 256} tile pixel pairs.")
+    detail = ["", "| timing (median) | wall ms | cpu ms |", "|---|---|---|"]
+    detail += [f"| {k} | {v['wall_ms']:.1f} | {v['cpu_ms']:.1f} |" for k, v in sorted(results.items())
+               if isinstance(v, dict)]
+    print("\n".join(lines + detail))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"info": info, "results": results, "memory_mib": memory}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
