@@ -206,6 +206,40 @@ struct EaaPixel {
     float phi_s[MAX_ROWS], dy_s[MAX_ROWS], u_s[MAX_ROWS];
 };
 
+// State of the row-constant EAA path for at most MR node rows (the column blocks of the transposed
+// path keep eight of these at once).
+template <int MR>
+struct EaaLineState {
+    Band band;
+    vf pi, sw, swr, avg, a_over_o, a;
+    vi inside;
+    vf R[MR], e[MR], eA[MR], A[MR], Ap[MR], emp[MR];
+    float phi_s[MR], dy_s[MR], u_s[MR];
+};
+constexpr int LINE_ROWS = 8;  // node cap of the transposed (outer axis x) path
+
+// 8x8 transpose: out[r][c] = in[c][r] (unpack, 64-bit shuffle, 128-bit swap: 24 shuffles).
+static inline __attribute__((always_inline)) void transpose8(const vf in[LANES], vf out[LANES]) {
+    const vi lo32 = {0, 8, 1, 9, 4, 12, 5, 13}, hi32 = {2, 10, 3, 11, 6, 14, 7, 15};
+    const vi lo64 = {0, 1, 8, 9, 4, 5, 12, 13}, hi64 = {2, 3, 10, 11, 6, 7, 14, 15};
+    const vi lo128 = {0, 1, 2, 3, 8, 9, 10, 11}, hi128 = {4, 5, 6, 7, 12, 13, 14, 15};
+    vf t[LANES], u[LANES];
+    for (int k = 0; k < 4; ++k) {
+        t[2 * k] = __builtin_shuffle(in[2 * k], in[2 * k + 1], lo32);
+        t[2 * k + 1] = __builtin_shuffle(in[2 * k], in[2 * k + 1], hi32);
+    }
+    for (int k = 0; k < 2; ++k) {
+        u[4 * k + 0] = __builtin_shuffle(t[4 * k + 0], t[4 * k + 2], lo64);
+        u[4 * k + 1] = __builtin_shuffle(t[4 * k + 0], t[4 * k + 2], hi64);
+        u[4 * k + 2] = __builtin_shuffle(t[4 * k + 1], t[4 * k + 3], lo64);
+        u[4 * k + 3] = __builtin_shuffle(t[4 * k + 1], t[4 * k + 3], hi64);
+    }
+    for (int k = 0; k < 4; ++k) {
+        out[k] = __builtin_shuffle(u[k], u[k + 4], lo128);
+        out[k + 4] = __builtin_shuffle(u[k], u[k + 4], hi128);
+    }
+}
+
 // [first, v[0], ..., v[6]]: the left neighbours' values of an 8-pixel row segment.
 static inline __attribute__((always_inline)) vf shift_in_first(vf v, float first) {
     vf r = __builtin_shuffle(v, vi{0, 0, 1, 2, 3, 4, 5, 6});
@@ -243,8 +277,11 @@ static inline __attribute__((always_inline)) Band outer_band_row(const Gauss& g,
 // row positions t_j, marginal phi_j, ridge_j) is one scalar per image row, and the inner integrals of
 // neighbouring pixels share their common edge: R_j(x) = (erf(A_j(x)) - erf(A_j(x - 1))) / 2, so a row
 // segment of 8 pixels costs one vector erf per node row (plus one scalar for the left edge).
+// px: the 8 inner coordinates (consecutive pixels), py: the outer coordinate. With the outer axis x the
+// same function evaluates a column segment: px = 8 consecutive y, py = x (see forward_tile).
+template <typename State>
 static inline __attribute__((always_inline)) vf eaa_eval_outer_y(const Gauss& g, const Settings& S, vf px,
-                                                                 float py, EaaPixel* st) {
+                                                                 float py, State* st) {
     st->pi = px;
     st->band = outer_band_row(g, S.k_sigma, py);
     const Band& b = st->band;
@@ -304,9 +341,9 @@ static inline __attribute__((always_inline)) vf eaa_eval_outer_y(const Gauss& g,
     return st->a;
 }
 
-template <bool GRAD_OPACITY>
+template <bool GRAD_OPACITY, typename State>
 static inline __attribute__((always_inline)) void eaa_grad_outer_y(const Gauss& g, const Settings& S,
-                                                                   const EaaPixel& st, vf ga, FootAcc* acc) {
+                                                                   const State& st, vf ga, FootAcc* acc) {
     const Band& b = st.band;
     ga = keep(st.inside, ga);
     if (GRAD_OPACITY) acc->go += ga * st.a_over_o;
@@ -416,7 +453,7 @@ template <bool GRAD_OPACITY>
 static inline __attribute__((always_inline)) void eaa_grad(const Gauss& g, const Settings& S, const EaaPixel& st,
                                                            vf ga, FootAcc* acc) {
     if (g.outer_y) {
-        eaa_grad_outer_y<GRAD_OPACITY>(g, S, st, ga, acc);
+        eaa_grad_outer_y<GRAD_OPACITY>(g, S, st, ga, acc);  // State = EaaPixel
         return;
     }
     const Band& b = st.band;

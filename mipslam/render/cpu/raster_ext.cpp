@@ -147,6 +147,13 @@ static inline __attribute__((always_inline)) bool uses_centre(const Gauss& g) {
     return MODE == MODE_CENTRE || (MODE == MODE_EAA && g.nodes <= 1);
 }
 
+// EAA Gaussians whose outer axis is x are evaluated in column segments (8 consecutive y at one x), where
+// the outer quantities are constant along the vector, then transposed 8x8 into the tile's row layout.
+template <int MODE>
+static inline __attribute__((always_inline)) bool uses_columns(const Gauss& g) {
+    return MODE == MODE_EAA && g.nodes >= 2 && g.nodes <= LINE_ROWS && !g.outer_y;
+}
+
 // Rows [*ra, *rb] and blocks [*b0, *b1] of the tile at (x0, y0) that cover the Gaussian's pixel box.
 // The row count is made even (rows are processed in pairs, which halves the loop overhead and gives the
 // CPU two independent pixel vectors per iteration); the extra row lies outside the box, where every
@@ -200,6 +207,7 @@ static int64_t forward_tile(const Scene& sc, int tile, float* out_color, float* 
     CentrePixel cp0, cp1;
     EaaPixel ep0, ep1;
     ExactPixel xp0, xp1;
+    EaaLineState<LINE_ROWS> lp;
     for (int32_t j = begin; j < end; ++j) {
         prefetch_pair(sc, j + PREFETCH_DISTANCE < end ? sc.isect_ids[j + PREFETCH_DISTANCE] : -1, C);
         const int32_t m = sc.isect_ids[j];
@@ -225,18 +233,39 @@ static int64_t forward_tile(const Scene& sc, int tile, float* out_color, float* 
             T[v] = select(valid, keep(ok, tn), t);
             last[v] = selecti(valid & ok, slot, last[v]);
         };
-        for (int r = ra; r < rb; r += 2) {
-            const float py0 = (float)(y0 + r), py1 = py0 + 1.f;
-            for (int b = b0; b <= b1; ++b) {
-                const int v0 = r * BLOCKS_PER_ROW + b;
-                const vf px = splat((float)(x0 + b * LANES)) + lane;
-                const vf a0 = eval_footprint<MODE>(g, S, k2, px, py0, &cp0, &ep0, &xp0);
-                const vf a1 = eval_footprint<MODE>(g, S, k2, px, py1, &cp1, &ep1, &xp1);
-                composite(v0, a0);
-                composite(v0 + BLOCKS_PER_ROW, a1);
+        if (uses_columns<MODE>(g)) {
+            const int r0 = std::max(g.py0 - y0, 0), r1 = std::min(g.py1 - y0, TILE - 1);
+            const int c0 = std::max(g.px0 - x0, 0), c1 = std::min(g.px1 - x0, TILE - 1);
+            for (int R = r0 / LANES; R <= r1 / LANES; ++R) {
+                const int rr0 = std::max(r0, R * LANES), rr1 = std::min(r1, R * LANES + LANES - 1);
+                const vf py_lanes = splat((float)(y0 + R * LANES)) + lane;
+                for (int b = c0 / LANES; b <= c1 / LANES; ++b) {
+                    const int cc0 = std::max(c0, b * LANES), cc1 = std::min(c1, b * LANES + LANES - 1);
+                    vf cols[LANES], rows[LANES];
+                    for (int i = 0; i < LANES; ++i) {
+                        const int cx = b * LANES + i;
+                        cols[i] = (cx < cc0 || cx > cc1) ? splat(0.f)
+                                                         : eaa_eval_outer_y(g, S, py_lanes, (float)(x0 + cx), &lp);
+                    }
+                    transpose8(cols, rows);
+                    for (int r = rr0; r <= rr1; ++r) composite(r * BLOCKS_PER_ROW + b, rows[r - R * LANES]);
+                    lanes += (int64_t)(cc1 - cc0 + 1) * LANES;
+                }
             }
+        } else {
+            for (int r = ra; r < rb; r += 2) {
+                const float py0 = (float)(y0 + r), py1 = py0 + 1.f;
+                for (int b = b0; b <= b1; ++b) {
+                    const int v0 = r * BLOCKS_PER_ROW + b;
+                    const vf px = splat((float)(x0 + b * LANES)) + lane;
+                    const vf a0 = eval_footprint<MODE>(g, S, k2, px, py0, &cp0, &ep0, &xp0);
+                    const vf a1 = eval_footprint<MODE>(g, S, k2, px, py1, &cp1, &ep1, &xp1);
+                    composite(v0, a0);
+                    composite(v0 + BLOCKS_PER_ROW, a1);
+                }
+            }
+            lanes += (int64_t)(rb - ra + 1) * (b1 - b0 + 1) * LANES;
         }
-        lanes += (int64_t)(rb - ra + 1) * (b1 - b0 + 1) * LANES;
         if (((j - begin) & 15) == 15) {  // the whole tile saturated: nothing behind can show
             vi alive = splati(0);
             for (int v = 0; v < NV; ++v) alive |= T[v] > splat(0.f);
@@ -336,6 +365,7 @@ static void backward_tile(const Scene& sc, int tile, const GradInputs& gin, floa
     CentrePixel cp0, cp1;
     EaaPixel ep0, ep1;
     ExactPixel xp0, xp1;
+    EaaLineState<LINE_ROWS> lines[LANES];
     for (int32_t j = begin; j < stop; ++j) {
         prefetch_pair(sc, j + PREFETCH_DISTANCE < stop ? sc.isect_ids[j + PREFETCH_DISTANCE] : -1, C);
         const int32_t m = sc.isect_ids[j];
@@ -350,13 +380,11 @@ static void backward_tile(const Scene& sc, int tile, const GradInputs& gin, floa
         acc.zero();
         vf acc_c[C], acc_d = splat(0.f);
         for (int c = 0; c < C; ++c) acc_c[c] = splat(0.f);
-        auto process = [&](int v, vf px, float py, CentrePixel* cp, EaaPixel* ep, ExactPixel* xp)
-                           __attribute__((always_inline)) {
-            const vi listed = slot < last[v];
-            if (!any_lane(listed)) return;
-            const vf a = eval_footprint<MODE>(g, S, k2, px, py, cp, ep, xp);
+        // Compositing part of the backward for one row segment with footprint a: returns dL/da (0 where the
+        // pixel does not take this Gaussian) and advances T and the prefix sum.
+        auto composite_grad = [&](int v, vi listed, vf a) __attribute__((always_inline)) {
             const vi valid = listed & (a >= splat(ALPHA_MIN));
-            if (!any_lane(valid)) return;
+            if (!any_lane(valid)) return splat(0.f);
             const vf al = vmin(a, splat(ALPHA_MAX));
             vf s = gdep[v] * z + galp[v];
             for (int c = 0; c < C; ++c) s += gcol[c][v] * col[c];
@@ -365,20 +393,59 @@ static void backward_tile(const Scene& sc, int tile, const GradInputs& gin, floa
             prefix[v] += w * s;
             // d out / d alpha_i = T_i s_i - (sum_{j > i} w_j s_j) / (1 - alpha_i)
             const vf dal = t * s - (stot[v] - prefix[v]) / (splat(1.f) - al);
-            const vf ga = keep(valid & (a <= splat(ALPHA_MAX)), dal);
             T[v] = t - w;
             if (GC)
                 for (int c = 0; c < C; ++c) acc_c[c] += w * gcol[c][v];
             acc_d += w * gdep[v];
+            return keep(valid & (a <= splat(ALPHA_MAX)), dal);
+        };
+        auto process = [&](int v, vf px, float py, CentrePixel* cp, EaaPixel* ep, ExactPixel* xp)
+                           __attribute__((always_inline)) {
+            const vi listed = slot < last[v];
+            if (!any_lane(listed)) return;
+            const vf a = eval_footprint<MODE>(g, S, k2, px, py, cp, ep, xp);
+            const vf ga = composite_grad(v, listed, a);
+            if (!any_lane(ga != splat(0.f))) return;
             grad_footprint<MODE, GO>(g, S, py, *cp, *ep, *xp, ga, &acc);
         };
-        for (int r = ra; r < rb; r += 2) {
-            const float py0 = (float)(y0 + r), py1 = py0 + 1.f;
-            for (int b = b0; b <= b1; ++b) {
-                const int v0 = r * BLOCKS_PER_ROW + b;
-                const vf px = splat((float)(x0 + b * LANES)) + lane;
-                process(v0, px, py0, &cp0, &ep0, &xp0);
-                process(v0 + BLOCKS_PER_ROW, px, py1, &cp1, &ep1, &xp1);
+        if (uses_columns<MODE>(g)) {
+            const int r0 = std::max(g.py0 - y0, 0), r1 = std::min(g.py1 - y0, TILE - 1);
+            const int c0 = std::max(g.px0 - x0, 0), c1 = std::min(g.px1 - x0, TILE - 1);
+            for (int R = r0 / LANES; R <= r1 / LANES; ++R) {
+                const int rr0 = std::max(r0, R * LANES), rr1 = std::min(r1, R * LANES + LANES - 1);
+                const vf py_lanes = splat((float)(y0 + R * LANES)) + lane;
+                for (int b = c0 / LANES; b <= c1 / LANES; ++b) {
+                    vi listed_any = splati(0);
+                    for (int r = rr0; r <= rr1; ++r) listed_any |= slot < last[r * BLOCKS_PER_ROW + b];
+                    if (!any_lane(listed_any)) continue;
+                    const int cc0 = std::max(c0, b * LANES), cc1 = std::min(c1, b * LANES + LANES - 1);
+                    vf cols[LANES], rows[LANES], ga_rows[LANES], ga_cols[LANES];
+                    for (int i = 0; i < LANES; ++i) {
+                        const int cx = b * LANES + i;
+                        cols[i] = (cx < cc0 || cx > cc1)
+                                      ? splat(0.f)
+                                      : eaa_eval_outer_y(g, S, py_lanes, (float)(x0 + cx), &lines[i]);
+                    }
+                    transpose8(cols, rows);
+                    for (int r = 0; r < LANES; ++r) ga_rows[r] = splat(0.f);
+                    for (int r = rr0; r <= rr1; ++r) {
+                        const int v = r * BLOCKS_PER_ROW + b;
+                        ga_rows[r - R * LANES] = composite_grad(v, slot < last[v], rows[r - R * LANES]);
+                    }
+                    transpose8(ga_rows, ga_cols);
+                    for (int i = cc0 - b * LANES; i <= cc1 - b * LANES; ++i)
+                        eaa_grad_outer_y<GO>(g, S, lines[i], ga_cols[i], &acc);
+                }
+            }
+        } else {
+            for (int r = ra; r < rb; r += 2) {
+                const float py0 = (float)(y0 + r), py1 = py0 + 1.f;
+                for (int b = b0; b <= b1; ++b) {
+                    const int v0 = r * BLOCKS_PER_ROW + b;
+                    const vf px = splat((float)(x0 + b * LANES)) + lane;
+                    process(v0, px, py0, &cp0, &ep0, &xp0);
+                    process(v0 + BLOCKS_PER_ROW, px, py1, &cp1, &ep1, &xp1);
+                }
             }
         }
         float sums[6] = {hsum(acc.g0), hsum(acc.g1), hsum(acc.g2), hsum(acc.g3), hsum(acc.g4), hsum(acc.go)};
