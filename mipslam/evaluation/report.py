@@ -146,8 +146,8 @@ def plot_trajectory(path: Path, gt: np.ndarray, est: np.ndarray, keyframes: np.n
         if 0 <= i < len(keyframes) and 0 <= j < len(keyframes):
             label = None if drawn[accepted] else ("loop closure" if accepted else "rejected loop")
             drawn[accepted] = True
-            ax.plot(keyframes[[i, j], a], keyframes[[i, j], b], "-" if accepted else ":", color="#d62728", lw=1.6,
-                    label=label)
+            ax.plot(keyframes[[i, j], a], keyframes[[i, j], b], "-" if accepted else ":", color="#d62728",
+                    lw=1.8 if accepted else 1.0, alpha=1.0 if accepted else 0.5, label=label)
     ax.set_xlabel(f"world {_AXIS_NAMES[a]} [m]")
     ax.set_ylabel(f"world {_AXIS_NAMES[b]} [m]")
     ax.set_aspect("equal", adjustable="datalim")
