@@ -82,7 +82,8 @@ def loop_summary(state: SLAMState, config: Config) -> dict:
             "optimisations": "per keyframe that added loop edges: graph size, cost before/after (robust, on the edges "
                              "kept), LM iterations, pruned loop edges [i, j], final weight and chi2 of every loop edge, "
                              "whether the correction was applied and why, largest keyframe correction, map PSNR at the "
-                             "loop's keyframes before/after the correction (dB), seconds",
+                             "loop's keyframes before the correction, with only the poses corrected, and after the "
+                             "Gaussians moved with their anchors (dB), seconds",
         },
         "summary": {
             "keyframes": len(state.keyframe_frames),

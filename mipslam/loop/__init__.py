@@ -4,9 +4,12 @@ Pure components (no config, no pipeline state): the pose graph and its LM solver
 (:mod:`.pose_graph`, :mod:`.solver`), spectral weighting and low-frequency bases
 (:mod:`.spectral`), loop-candidate descriptors (:mod:`.descriptors`) and RGB-D geometric
 verification with Open3D (:mod:`.registration`, imported lazily: Open3D loads on first use).
-:mod:`.from_config` maps the ``loop:`` config section to their option objects. docs/pgo.md
-defines the method and reports the benchmark.
+:mod:`.from_config` maps the ``loop:`` config section to their option objects. :mod:`.closer` is
+the loop-closure stage of the frame loop (:class:`LoopCloser`, built from the ``loop:`` section,
+and the :class:`LoopState` that goes into the SLAM state); :mod:`.faults` holds the fault
+injection used by tests and benchmarks. docs/pgo.md defines the method and reports the benchmarks.
 """
+from mipslam.loop.closer import KeyframeView, LoopCloser, LoopState, LoopStep
 from mipslam.loop.descriptors import (
     CandidateOptions,
     DescriptorOptions,
@@ -21,6 +24,7 @@ from mipslam.loop.solver import PGOOptions, PGOResult, optimize_pose_graph
 from mipslam.loop.spectral import low_frequency_basis, spectral_coherence_weights
 
 __all__ = [
+    "LoopCloser", "LoopState", "LoopStep", "KeyframeView",
     "PoseGraph", "edge_residuals", "edge_jacobians",
     "PGOOptions", "PGOResult", "optimize_pose_graph",
     "spectral_coherence_weights", "low_frequency_basis",
