@@ -116,7 +116,9 @@ class Tracker:
     ) -> TrackingResult:
         cfg = self.config
         device, dtype = gaussians.means.device, gaussians.means.dtype
-        T_cw_init = se3_inverse(T_wc_init.to(torch.float64)).to(device=device, dtype=dtype)
+        # Pose algebra in float64 (a float32 product is orthonormal only to ~1e-7, and the motion model
+        # would amplify that from frame to frame); only the renderer's input is cast to the map's dtype.
+        T_cw_init = se3_inverse(T_wc_init.to(torch.float64)).to(device=device)
         rho = torch.zeros(3, device=device, dtype=dtype, requires_grad=True)
         phi = torch.zeros(3, device=device, dtype=dtype, requires_grad=True)
         groups = [{"params": [rho], "lr": cfg.lr_translation}, {"params": [phi], "lr": cfg.lr_rotation}]
@@ -133,7 +135,7 @@ class Tracker:
         for level in levels:
             for _ in range(level.iterations):
                 xi = torch.cat([rho, phi])
-                T_cw = se3_exp(xi) @ T_cw_init
+                T_cw = (se3_exp(xi.to(torch.float64)) @ T_cw_init).to(dtype)
                 loss = self._loss(gaussians, T_cw, level, exposure)
                 if not torch.isfinite(loss.total):
                     return self._failed(T_wc_init, iterations, "non_finite_loss", math.nan, 0.0)
@@ -152,8 +154,8 @@ class Tracker:
         # Evaluate the best pose once more at full resolution: its loss and valid-pixel count decide success.
         xi_best, exposure_best = best
         with torch.no_grad():
-            T_cw_best = se3_exp(xi_best) @ T_cw_init
-            last = self._loss(gaussians, T_cw_best, full, exposure_best)
+            T_cw_best = se3_exp(xi_best.to(torch.float64)) @ T_cw_init
+            last = self._loss(gaussians, T_cw_best.to(dtype), full, exposure_best)
         total_pixels = frame.depth.numel()
         valid_fraction = last.num_depth_pixels / max(1, total_pixels)
         final_loss = float(last.total)

@@ -27,7 +27,7 @@ REPO = Path(__file__).resolve().parent.parent
 # Small enough for a few seconds per run on 2 cores, large enough for tracking to be meaningful.
 TINY = [
     "mapping.first_frame_iterations=30", "mapping.iterations=8", "mapping.densify_pixel_stride=2",
-    "tracking.iterations=15", "keyframes.window_size=3", "keyframes.random_past=1", "run.threads=2",
+    "tracking.iterations=15", "keyframes.window_size=3", "keyframes.random_past=1", "run.threads=1",
 ]
 
 
