@@ -211,18 +211,23 @@ def _scale_label(scale: float) -> str:
 def plot_timing(path: Path, timings: dict) -> Path:
     stages = {name: np.asarray(values.get("per_frame_s", []), dtype=np.float64)
               for name, values in timings.get("stages", {}).items()}
+    from matplotlib.ticker import MaxNLocator
+
     figure = _figure(9.0, 3.8)
     left, right = figure.subplots(1, 2, width_ratios=(2.2, 1))
     frames = max((len(v) for v in stages.values()), default=0)
+    per_frame_total = sum((np.pad(v, (0, frames - len(v))) for v in stages.values()), np.zeros(frames))
+    unit, factor = ("s", 1.0) if frames and per_frame_total.max() > 10.0 else ("ms", 1000.0)
     bottom = np.zeros(frames)
     for k, (name, values) in enumerate(stages.items()):
         padded = np.zeros(frames)
         padded[:len(values)] = values
-        left.bar(np.arange(frames), padded * 1000, bottom=bottom, width=0.85, color=STAGE_COLORS[k % len(STAGE_COLORS)],
-                 label=name)
-        bottom += padded * 1000
+        left.bar(np.arange(frames), padded * factor, bottom=bottom, width=0.85,
+                 color=STAGE_COLORS[k % len(STAGE_COLORS)], label=name)
+        bottom += padded * factor
+    left.xaxis.set_major_locator(MaxNLocator(integer=True))
     left.set_xlabel("frame")
-    left.set_ylabel("time [ms]")
+    left.set_ylabel(f"time [{unit}]")
     left.set_title("Time per frame by stage")
     left.grid(alpha=0.3, axis="y")
     left.legend(fontsize=8)
@@ -244,6 +249,9 @@ def plot_gaussians(path: Path, frame_indices: np.ndarray, counts: np.ndarray, ke
     """frame_indices [N], counts [N], keyframe_mask [N] bool."""
     figure = _figure(7.5, 3.4)
     ax = figure.add_subplot()
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.plot(frame_indices, counts, "-", color="#2ca02c", lw=1.8, label="Gaussians")
     if keyframe_mask.any():
         ax.plot(frame_indices[keyframe_mask], counts[keyframe_mask], "^", color="#ff7f0e", ms=6, mec="black",
@@ -270,7 +278,11 @@ def plot_crops(path: Path, showcase) -> Path:
 
     columns = ("ground truth", *showcase.modes)
     rows = showcase.scales
-    figure = _figure(2.3 * len(columns) + 0.6, 2.0 * len(rows) + 0.6)
+    largest = showcase.ground_truth[max(rows)]
+    x0, y0, x1, y1 = showcase.crop_box
+    aspect = ((y1 - y0) * largest.shape[0]) / max((x1 - x0) * largest.shape[1], 1e-9)  # crop height / width
+    cell = 2.3
+    figure = _figure(cell * len(columns) + 0.6, (cell * aspect + 0.25) * len(rows) + 0.6)
     axes = figure.subplots(len(rows), len(columns), squeeze=False)
     for r, scale in enumerate(rows):
         truth = showcase.ground_truth[scale]
