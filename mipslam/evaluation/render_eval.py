@@ -33,7 +33,6 @@ Protocol (written into ``metrics.json`` under ``"render"`` by :meth:`RenderEvalu
 """
 from __future__ import annotations
 
-import json
 import logging
 import math
 from dataclasses import dataclass, field, replace
@@ -42,14 +41,14 @@ from typing import Any, Literal, Sequence
 
 import numpy as np
 import torch
-import yaml
 
-from mipslam.config import Config, config_from_dict
+from mipslam.config import Config
 from mipslam.errors import ConfigError, DatasetError, EvaluationError
 from mipslam.evaluation.image_metrics import depth_l1, psnr, resize_area, ssim
 from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry import se3_inverse
 from mipslam.io.ply import read_map_ply
+from mipslam.evaluation.run_files import read_run_config, read_run_json
 from mipslam.io.run_folder import RunFolder
 from mipslam.io.tum import read_tum_trajectory
 from mipslam.render import MODES, RenderOutput
@@ -353,26 +352,12 @@ class RunRenderContext:
         return AreaResampledGroundTruth(full, self.config.dataset.downscale, self.intrinsics)
 
 
-def _read_json(path: Path) -> dict:
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise EvaluationError(f"{path}: missing; is this a run folder written by 'mipslam run'?") from None
-    except json.JSONDecodeError as exc:
-        raise EvaluationError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
-
-
 def load_render_context(run_dir: str | Path, *, device: torch.device | str = "cpu") -> RunRenderContext:
     """Read config.yaml, run.json, frames.json, traj_est.txt and map.ply of a run folder."""
     folder = RunFolder(run_dir)
-    if not folder.root.is_dir():
-        raise EvaluationError(f"{folder.root}: run folder not found")
-    try:
-        config = config_from_dict(yaml.safe_load(folder.config_yaml.read_text(encoding="utf-8")) or {})
-    except FileNotFoundError:
-        raise EvaluationError(f"{folder.config_yaml}: missing; is this a run folder written by 'mipslam run'?") from None
-    info = _read_json(folder.root / "run.json")
-    records = _read_json(folder.root / "frames.json").get("frames", [])
+    config = read_run_config(folder)
+    info = read_run_json(folder.root / "run.json")
+    records = read_run_json(folder.root / "frames.json").get("frames", [])
     frames = [FrameInfo(k, int(r["index"]), float(r["timestamp"]), int(r["keyframe_id"])) for k, r in enumerate(records)]
     est = read_tum_trajectory(folder.traj_est)
     if len(est) != len(frames):

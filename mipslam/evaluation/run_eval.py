@@ -8,28 +8,17 @@ override it, renders the map for the render metrics (:mod:`mipslam.evaluation.re
 """
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
-from mipslam.config import config_from_dict
 from mipslam.errors import DatasetError, EvaluationError
 from mipslam.evaluation.trajectory import evaluate_trajectory
+from mipslam.evaluation.run_files import read_run_config, read_run_json
 from mipslam.io.run_folder import RunFolder
 from mipslam.io.tum import read_tum_trajectory
 
-import yaml
 
 logger = logging.getLogger(__name__)
-
-
-def _read_json(path: Path) -> dict:
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise EvaluationError(f"{path}: missing; is this a run folder written by 'mipslam run'?") from None
-    except json.JSONDecodeError as exc:
-        raise EvaluationError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
 
 
 def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, association: str | None = None,
@@ -43,16 +32,11 @@ def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, associati
     unavailable and the trajectory metrics are still returned. report: write ``RUN_DIR/report/``.
     """
     folder = RunFolder(run_dir)
-    if not folder.root.is_dir():
-        raise EvaluationError(f"{folder.root}: run folder not found")
-    try:
-        config = config_from_dict(yaml.safe_load(folder.config_yaml.read_text(encoding="utf-8")) or {})
-    except FileNotFoundError:
-        raise EvaluationError(f"{folder.config_yaml}: missing; is this a run folder written by 'mipslam run'?") from None
-    info = _read_json(folder.root / "run.json")
+    config = read_run_config(folder)
+    info = read_run_json(folder.root / "run.json")
     if not folder.traj_gt.is_file():
         raise EvaluationError(f"{folder.traj_gt}: no ground truth for this run's sequence; nothing to compare with")
-    frames = _read_json(folder.root / "frames.json")
+    frames = read_run_json(folder.root / "frames.json")
     by_index = info["dataset"]["timestamp_kind"] == "index"
     gt = read_tum_trajectory(folder.traj_gt, allow_duplicate_timestamps=True)
     est = read_tum_trajectory(folder.traj_est)
