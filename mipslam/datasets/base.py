@@ -9,6 +9,7 @@ files present) happens at construction, so a broken folder fails before any work
 from __future__ import annotations
 
 import logging
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Literal, Protocol, runtime_checkable
@@ -222,6 +223,16 @@ class SequenceBase:
     def __repr__(self) -> str:
         i = self.intrinsics
         return f"{type(self).__name__}({self.name!r}, {len(self)} frames, {i.width}x{i.height}, root={str(self.root)!r})"
+
+
+def read_json(path: Path):
+    """A JSON file of a dataset folder; DatasetError naming the file (and line for syntax errors)."""
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise DatasetError(path, f"invalid JSON ({exc.msg})", exc.lineno) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(path, f"cannot read file ({exc})") from None
 
 
 def read_text_rows(path: Path) -> list[tuple[int, list[str]]]:

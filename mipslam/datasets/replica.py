@@ -18,7 +18,6 @@ validated (16 finite numbers, a rigid transform) and it must cover every frame n
 """
 from __future__ import annotations
 
-import json
 import logging
 import re
 from pathlib import Path
@@ -32,6 +31,7 @@ from mipslam.datasets.base import (
     FrameRecord,
     SequenceBase,
     parse_float,
+    read_json,
     read_text_rows,
 )
 from mipslam.errors import DatasetError
@@ -46,12 +46,7 @@ _EXTENSION_PREFERENCE = {"png": 0, "jpg": 1, "jpeg": 1}
 
 def read_cam_params(path: Path) -> dict[str, float]:
     """The ``camera`` section of a NICE-SLAM ``cam_params.json`` (keys w, h, fx, fy, cx, cy, scale; any subset)."""
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise DatasetError(path, f"invalid JSON ({exc.msg})", exc.lineno) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(path, f"cannot read file ({exc})") from None
+    data = read_json(path)
     camera = data.get("camera") if isinstance(data, dict) else None
     if not isinstance(camera, dict):
         raise DatasetError(path, 'expected an object {"camera": {"w", "h", "fx", "fy", "cx", "cy", "scale"}}')

@@ -9,7 +9,6 @@ sensor options) is kept in :attr:`SyntheticSequence.meta` for evaluation and rep
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -18,7 +17,7 @@ import numpy as np
 import torch
 
 from mipslam.config import DatasetConfig
-from mipslam.datasets.base import SequenceBase
+from mipslam.datasets.base import SequenceBase, read_json
 from mipslam.datasets.replica import ReplicaSequence
 from mipslam.datasets.tum import TUMSequence
 from mipslam.errors import DatasetError
@@ -35,12 +34,7 @@ def read_synth_meta(path: Path) -> dict[str, Any]:
             path, "file not found; a synthetic sequence is a data_synth folder with synth.json "
             "(use dataset.kind=replica or tum for other folders, or regenerate it with `mipslam synth`)"
         )
-    try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise DatasetError(path, f"invalid JSON ({exc.msg})", exc.lineno) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(path, f"cannot read file ({exc})") from None
+    meta = read_json(path)
     if not isinstance(meta, dict):
         raise DatasetError(path, "expected a JSON object")
     version = meta.get("format_version")
