@@ -7,6 +7,8 @@ errors into exit codes (0 success, 1 unexpected failure, 2 usage/config/data err
     mipslam export RUN_DIR --mesh mesh.ply [--voxel-size M]
     mipslam synth --out DIR --format replica|tum --trajectory loop ...
     mipslam config CONFIG [--preset P] [--set k=v]...
+    mipslam bench SEQUENCE_OR_CONFIG [--presets fast,balanced,accurate] [--sweep KEY=V1,V2]... [--repeat 3]
+                  [--threads 2] [--max-frames N] [--set k=v]... [--out DIR] [--jobs N | --ray [ADDRESS]]
 """
 from __future__ import annotations
 
@@ -128,6 +130,29 @@ def _build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--depth-noise", type=float, default=0.0, help="depth noise at 1 m (metres, grows with z^2)")
     sy.add_argument("--depth-holes", type=float, default=0.0, help="fraction of depth pixels dropped")
     sy.add_argument("--exposure-jitter", type=float, default=0.0, help="per-frame gain/bias jitter")
+
+    be = sub.add_parser("bench", help="run presets/sweeps on a sequence, repeated, and tabulate speed against accuracy")
+    be.add_argument("target", type=Path, metavar="SEQUENCE_OR_CONFIG",
+                    help="a YAML config, or a Replica / TUM / data_synth sequence folder (its configs/<kind>.yaml is used)")
+    be.add_argument("--presets", default=None, metavar="P1,P2,...",
+                    help="presets to compare, e.g. fast,balanced,accurate ('none' = the config as it is; default none)")
+    be.add_argument("--sweep", dest="sweeps", action="append", default=[], metavar="KEY=V1,V2,...",
+                    help="config values to sweep, e.g. render.eaa_max_nodes=1,2,4 (repeatable: cartesian product)")
+    be.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a config value in every setting (repeatable; wins over --threads and --max-frames)")
+    be.add_argument("--repeat", type=int, default=3, help="runs per setting (default 3; medians and spread over them)")
+    be.add_argument("--threads", type=int, default=2, help="torch threads per run (run.threads, default 2)")
+    be.add_argument("--seed", type=int, default=0, help="run.seed of every run (default 0)")
+    be.add_argument("--max-frames", type=int, default=None, help="process at most N frames of the sequence")
+    be.add_argument("--timeout", type=float, default=3600.0, metavar="S",
+                    help="seconds before a job's run is killed and recorded as failed (default 3600)")
+    be.add_argument("--out", type=Path, help="output folder, new or empty (default: runs/bench-<name>-<time>)")
+    where = be.add_mutually_exclusive_group()
+    where.add_argument("--jobs", type=int, default=1, metavar="N",
+                       help="local jobs at once (default 1: runs sharing a machine time each other; recorded)")
+    where.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
+                       help="run the jobs as Ray tasks: a local Ray instance, or the cluster at ADDRESS "
+                            "(needs pip install 'mipslam[ray]')")
 
     cf = sub.add_parser("config", help="print the resolved config (file + preset + overrides)")
     cf.add_argument("config", type=Path)
@@ -266,7 +291,25 @@ def _cmd_export(args) -> int:
     return EXIT_OK
 
 
-_COMMANDS = {"run": _cmd_run, "eval": _cmd_eval, "synth": _cmd_synth, "config": _cmd_config, "export": _cmd_export}
+def _cmd_bench(args) -> int:
+    from mipslam.bench import (BenchSpec, LocalExecutor, RayExecutor, default_out_dir, parse_presets, parse_sweep,
+                               resolve_target, run_bench)
+
+    target = resolve_target(args.target)
+    spec = BenchSpec(target=target, out_dir=args.out or default_out_dir(target), presets=parse_presets(args.presets),
+                     sweeps=tuple(parse_sweep(s) for s in args.sweeps), overrides=tuple(args.overrides),
+                     repeat=args.repeat, threads=args.threads, seed=args.seed, max_frames=args.max_frames,
+                     timeout_s=args.timeout)
+    executor = RayExecutor(args.ray or None) if args.ray is not None else LocalExecutor(args.jobs)
+    outcome = run_bench(spec, executor)
+    print(outcome.describe())
+    if outcome.failed:
+        print(f"warning: {outcome.failed} of {len(outcome.rows)} jobs failed; their errors are rows of "
+              f"{outcome.files.markdown}", file=sys.stderr)
+    return EXIT_OK
+
+
+_COMMANDS = {"bench": _cmd_bench, "run": _cmd_run, "eval": _cmd_eval, "synth": _cmd_synth, "config": _cmd_config, "export": _cmd_export}
 
 
 def _configure_logging(debug: bool, quiet: bool) -> None:

@@ -1,0 +1,104 @@
+"""``mipslam bench``: run settings (presets x sweeps) on a sequence, repeated, and measure the speed/accuracy trade.
+
+Pieces (each usable alone, most of them pure):
+
+* :mod:`~mipslam.bench.spec`     what to run: :class:`BenchSpec`, :func:`parse_sweep`, :func:`plan_jobs`;
+* :mod:`~mipslam.bench.execute`  how: :func:`execute_job` (``mipslam run`` + ``mipslam eval`` child
+  processes), :class:`LocalExecutor` (default, sequential), :class:`RayExecutor` (``--ray``), :func:`run_jobs`;
+* :mod:`~mipslam.bench.summary`  statistics: :func:`summarize`, :func:`pareto_front`, :func:`fit_power_law`;
+* :mod:`~mipslam.bench.report`   files: :func:`write_outputs` (bench.json, bench.md, bench.png).
+
+:func:`run_bench` chains them. docs/bench.md describes the protocol.
+"""
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+from mipslam.bench.execute import Executor, JobResult, LocalExecutor, RayExecutor, execute_job, run_jobs
+from mipslam.bench.report import BenchFiles, machine_info, write_outputs
+from mipslam.bench.spec import (BenchSpec, Job, Setting, Sweep, Target, check_out_dir, default_out_dir,
+                                parse_presets, parse_sweep, plan_jobs, plan_settings, resolve_target)
+from mipslam.bench.summary import PowerLaw, SettingSummary, Spread, fit_power_law, pareto_front, spread, summarize
+from mipslam.errors import MipslamError
+
+__all__ = [
+    "BenchFiles", "BenchOutcome", "BenchSpec", "Executor", "Job", "JobResult", "LocalExecutor", "PowerLaw",
+    "RayExecutor", "Setting", "SettingSummary", "Spread", "Sweep", "Target", "default_out_dir", "execute_job",
+    "fit_power_law", "machine_info", "pareto_front", "parse_presets", "parse_sweep", "plan_jobs", "plan_settings",
+    "resolve_target", "run_bench", "run_jobs", "spread", "summarize", "write_outputs",
+]
+
+log = logging.getLogger(__name__)
+
+PROGRESS_FILE = "jobs.jsonl"  # one finished job per line, written as the bench goes (kept after an interrupt)
+
+
+@dataclass(frozen=True)
+class BenchOutcome:
+    files: BenchFiles
+    rows: tuple[JobResult, ...]
+    settings: tuple[SettingSummary, ...]
+
+    @property
+    def failed(self) -> int:
+        return sum(not r.ok for r in self.rows)
+
+    def describe(self) -> str:
+        lines = [f"bench: {len(self.rows)} jobs, {len(self.settings)} settings, {self.failed} failed"]
+        for s in self.settings:
+            def med(x, digits):
+                return "–" if x is None else f"{x.median:.{digits}f}"
+            front = "".join(f for f, on in (("A", s.on_front_ate), ("P", s.on_front_psnr)) if on)
+            lines.append(f"  {s.setting}: {med(s.fps, 2)} frames/s, ATE {med(s.ate_rmse_cm, 3)} cm, "
+                         f"PSNR {med(s.psnr_db, 2)} dB ({s.jobs - s.failed}/{s.jobs} ok){' front ' + front if front else ''}")
+        lines.append(f"results: {self.files.json}, {self.files.markdown.name}, {self.files.plot.name}")
+        return "\n".join(lines)
+
+
+def _request(spec: BenchSpec, settings: list[Setting]) -> dict:
+    return {
+        "target": str(spec.target.source),
+        "kind": spec.target.kind, "config": str(spec.target.config_path),
+        "presets": [p or "none" for p in spec.presets],
+        "sweeps": {s.key: list(s.texts) for s in spec.sweeps}, "overrides": list(spec.overrides),
+        "repeat": spec.repeat, "threads": spec.threads, "seed": spec.seed, "max_frames": spec.max_frames,
+        "timeout_s": spec.timeout_s,
+        "settings": [{"index": s.index, "label": s.label, "overrides": list(s.overrides), "threads": s.threads,
+                      "seed": s.seed} for s in settings],
+    }
+
+
+def run_bench(spec: BenchSpec, executor: Executor | None = None) -> BenchOutcome:
+    """Plan, run (``executor``, default sequential local processes), summarise and write the outputs."""
+    out_dir = Path(spec.out_dir)
+    check_out_dir(out_dir)
+    settings = plan_settings(spec)
+    jobs = plan_jobs(spec, settings)
+    executor = executor or LocalExecutor()
+    threads = sorted({s.threads for s in settings})
+    machine = machine_info(threads[0] if len(threads) == 1 else threads)  # type: ignore[arg-type]
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise MipslamError(f"{out_dir}: cannot create the output folder ({exc.strerror or exc})") from None
+    progress = out_dir / PROGRESS_FILE
+    log.info("bench: %d settings x %d repeats = %d jobs into %s (%s)", len(settings), spec.repeat, len(jobs), out_dir,
+             executor.describe()["executor"])
+
+    def on_result(i: int, row: JobResult) -> None:
+        with progress.open("a", encoding="utf-8") as handle:
+            handle.write(json.dumps(row.to_dict()) + "\n")
+        if row.ok:
+            log.info("[%d/%d] %s r%d: %.2f frames/s, ATE %.3f cm, PSNR %s dB", i + 1, len(jobs), row.setting,
+                     row.repeat, row.fps or float("nan"), row.ate_rmse_cm or float("nan"),
+                     "–" if row.psnr_db is None else f"{row.psnr_db:.2f}")
+        else:
+            log.warning("[%d/%d] %s r%d failed: %s", i + 1, len(jobs), row.setting, row.repeat, row.error)
+
+    rows = run_jobs(jobs, executor, on_result)
+    summaries = summarize(rows)
+    files = write_outputs(out_dir, machine, executor.describe(), _request(spec, settings), rows, summaries)
+    return BenchOutcome(files, tuple(rows), tuple(summaries))
