@@ -57,6 +57,10 @@ def read_cam_params(path: Path) -> dict[str, float]:
         value = camera[key]
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
             raise DatasetError(path, f"camera.{key} must be a finite number, got {value!r}")
+        if key in ("fx", "fy", "scale") and value <= 0:
+            raise DatasetError(path, f"camera.{key} must be positive, got {value!r}")
+        if key in ("w", "h") and (value < 1 or value != int(value)):
+            raise DatasetError(path, f"camera.{key} must be a whole number of pixels >= 1, got {value!r}")
         out[key] = float(value)
     return out
 

@@ -51,6 +51,10 @@ def read_synth_meta(path: Path) -> dict[str, Any]:
         value = intrinsics.get(key)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             raise DatasetError(path, f"intrinsics.{key} must be a finite number, got {value!r}")
+        if key in ("fx", "fy") and value <= 0:
+            raise DatasetError(path, f"intrinsics.{key} must be positive, got {value!r}")
+        if key in ("width", "height") and (value < 1 or value != int(value)):
+            raise DatasetError(path, f"intrinsics.{key} must be a whole number of pixels >= 1, got {value!r}")
     scale = meta.get("depth_scale")
     if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale <= 0:
         raise DatasetError(path, f"depth_scale must be a positive number, got {scale!r}")
@@ -75,12 +79,20 @@ class SyntheticSequence:
             cfg,
             fx=pick(cfg.fx, float(k["fx"])), fy=pick(cfg.fy, float(k["fy"])),
             cx=pick(cfg.cx, float(k["cx"])), cy=pick(cfg.cy, float(k["cy"])),
-            width=pick(cfg.width, int(k["width"])), height=pick(cfg.height, int(k["height"])),
+            # The image size is checked against synth.json below (so an error names that file, not the config).
+            width=cfg.width, height=cfg.height,
             depth_scale=pick(cfg.depth_scale, float(self.meta["depth_scale"])),
         )
         name = f"synthetic:{self.root.name}"
         reader = ReplicaSequence if self.meta["layout"] == "replica" else TUMSequence
         self.inner: SequenceBase = reader(self.root, inner_cfg, name=name)
+        size = (self.inner.full_intrinsics.width, self.inner.full_intrinsics.height)
+        if cfg.width is None and cfg.height is None and size != (int(k["width"]), int(k["height"])):
+            raise DatasetError(
+                self.root / SYNTH_FILE,
+                f"intrinsics say {int(k['width'])}x{int(k['height'])} but the images are {size[0]}x{size[1]} "
+                f"({self.inner.frame_paths[0][0].name}); regenerate the sequence or fix synth.json",
+            )
         self.name = name
         self.layout: str = self.meta["layout"]
         self.timestamp_kind = self.inner.timestamp_kind
