@@ -1,0 +1,249 @@
+"""Benchmark: a long run on a data_synth loop sequence that revisits the same room (issue 8, "Long runs").
+
+The sequence is data_synth's ``loop`` trajectory at 80x60 (``--laps`` laps; by default at least 2
+and as many as keep at least 240 frames per lap, where the camera looks outwards and turns a full
+360 degrees: 2 laps for 500 frames, 8 for 2000). The first lap covers the room and every later lap
+revisits it. (With fewer than 240 frames per lap, e.g. 100 frames, each lap sweeps the +x wall.) ``mipslam`` runs it with
+``configs/synthetic.yaml --preset fast`` (``run.threads`` 1 by default, checkpoints every 50
+frames, 2 kept) in this process, and a per-frame probe (the pipeline's ``after_tracking`` hook,
+which returns the tracking result unchanged) records, for every frame:
+
+* wall time since the previous frame's probe (tracking, keyframe decision, mapping, loop closure,
+  checkpoint writes: everything the frame loop does), seconds;
+* resident memory (RSS) of the process, MiB (psutil where installed, else ``/proc/self/status``);
+* Gaussians in the map (after the previous frame);
+* checkpoint files on disk.
+
+Checks (printed with PASS/FAIL; the exit code is 1 if one fails):
+
+* RSS flat after the room is covered: RSS at the end minus RSS when the room is covered (end of
+  the first lap; the middle of the run for a single lap) is at most ``max(10 %, 64 MiB)``;
+* no growth of per-frame time: median of the last quarter <= 1.5 x median of the first quarter
+  (frame 0, which maps the first keyframe from scratch, left out);
+* Gaussian count plateaus: the last quarter of the run adds at most 5 % to the count;
+* bounded checkpoint files: never more than ``run.keep_checkpoints + 1`` (+1: the moment between
+  writing a new checkpoint and deleting the oldest).
+
+Run: ``.venv/bin/python benchmarks/bench_long_run.py --frames 500 --json long500.json``
+(``--frames 100`` for a quick look, ``--frames 2000`` for the full issue-8 run; ``--keep DIR``
+keeps the sequence and run folder). The curves are printed as a table at ``--rows`` frames.
+"""
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import shutil  # noqa: E402
+import statistics  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import torch  # noqa: E402
+
+import data_synth  # noqa: E402
+from mipslam.checkpoint import list_checkpoints  # noqa: E402
+from mipslam.config import load_config  # noqa: E402
+from mipslam.evaluation.trajectory import evaluate_trajectory  # noqa: E402
+from mipslam.io.tum import read_tum_trajectory  # noqa: E402
+from mipslam.pipeline import PipelineHooks, run_slam  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+FULL_TURN_FRAMES_PER_LAP = 240  # data_synth.trajectories.FULL_TURN_MIN_FRAMES
+
+RSS_GROWTH_FRACTION, RSS_GROWTH_MIB = 0.10, 64.0
+TIME_GROWTH_RATIO = 1.5
+GAUSSIAN_GROWTH_FRACTION = 0.05
+
+
+def rss_mib() -> float:
+    """Resident set size of this process in MiB (psutil, else /proc/self/status VmRSS)."""
+    try:
+        import psutil
+    except ImportError:
+        psutil = None
+    if psutil is not None:
+        return psutil.Process().memory_info().rss / 2**20
+    with open("/proc/self/status", encoding="ascii") as status:
+        for line in status:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024  # kB
+    return float("nan")
+
+
+@dataclass
+class FrameProbe:
+    """The ``after_tracking`` hook: samples time, RSS, Gaussians and checkpoint files once per frame."""
+
+    checkpoints: Path
+    frame: list[int] = field(default_factory=list)
+    seconds: list[float] = field(default_factory=list)  # since the previous probe
+    rss_mib: list[float] = field(default_factory=list)
+    gaussians: list[int] = field(default_factory=list)
+    checkpoint_files: list[int] = field(default_factory=list)
+    last_period_s: float = float("nan")  # from the last probe to the end of the run (last frame and outputs)
+    final_gaussians: int = 0
+    final_checkpoint_files: int = 0
+    _last: float | None = None
+
+    def finish(self, gaussians: int) -> None:
+        self.last_period_s = time.perf_counter() - self._last if self._last is not None else float("nan")
+        self.final_gaussians = gaussians
+        self.final_checkpoint_files = len(list_checkpoints(self.checkpoints))
+
+    def periods(self) -> list[float]:
+        """Seconds of the frame loop per frame: from one probe (after tracking) to the next."""
+        return self.seconds[1:] + [self.last_period_s]
+
+    def __call__(self, index, result, state):
+        now = time.perf_counter()
+        self.frame.append(int(index))
+        self.seconds.append(float("nan") if self._last is None else now - self._last)
+        self._last = now
+        self.rss_mib.append(rss_mib())
+        self.gaussians.append(len(state.gaussian_map))
+        self.checkpoint_files.append(len(list_checkpoints(self.checkpoints)))
+        return result
+
+
+def default_laps(frames: int) -> int:
+    return max(2, frames // (FULL_TURN_FRAMES_PER_LAP + 10))
+
+
+def covered_frame(frames: int, laps: int) -> int:
+    """The frame by which the room has been seen once: the end of the first lap (middle for one lap)."""
+    return (frames - 1) // laps if laps > 1 else frames // 2
+
+
+def quarter(values: list[float], which: int) -> list[float]:
+    n = len(values)
+    return values[which * n // 4:(which + 1) * n // 4]
+
+
+def checks(probe: FrameProbe, frames: int, laps: int, keep: int) -> list[tuple[str, bool, str]]:
+    """(name, passed, the numbers) for the four properties of the module docstring."""
+    out = []
+    covered = covered_frame(frames, laps)
+    rss_covered, rss_end = probe.rss_mib[covered], probe.rss_mib[-1]
+    allowed = max(RSS_GROWTH_FRACTION * rss_covered, RSS_GROWTH_MIB)
+    out.append(("RSS flat after the room is covered", rss_end - rss_covered <= allowed,
+                f"{rss_covered:.0f} MiB at frame {covered}, {rss_end:.0f} MiB at the end "
+                f"({rss_end - rss_covered:+.0f} MiB, allowed {allowed:.0f}); peak {max(probe.rss_mib):.0f} MiB"))
+    times = probe.periods()[1:]  # frame 0 maps the first keyframe from scratch
+    first, last = statistics.median(quarter(times, 0)), statistics.median(quarter(times, 3))
+    out.append(("no growth of per-frame time", last <= TIME_GROWTH_RATIO * first,
+                f"median {first * 1000:.0f} ms/frame in the first quarter, {last * 1000:.0f} ms in the last "
+                f"(ratio {last / first:.2f}, allowed {TIME_GROWTH_RATIO})"))
+    start = probe.gaussians[3 * len(probe.gaussians) // 4]
+    end = probe.final_gaussians
+    out.append(("Gaussian count plateaus", end <= (1 + GAUSSIAN_GROWTH_FRACTION) * start,
+                f"{start} Gaussians at 3/4 of the run, {end} at the end ({(end / max(start, 1) - 1) * 100:+.1f} %, "
+                f"allowed +{GAUSSIAN_GROWTH_FRACTION * 100:.0f} %)"))
+    most = max(max(probe.checkpoint_files), probe.final_checkpoint_files)
+    out.append(("bounded checkpoint files", most <= keep + 1,
+                f"at most {most} checkpoint files on disk during the run, {probe.final_checkpoint_files} at the end "
+                f"(keep_checkpoints={keep})"))
+    return out
+
+
+def curve_rows(probe: FrameProbe, rows: int) -> list[dict]:
+    """Every ``len/rows``-th frame: median per-frame time over the stretch, RSS, Gaussians, checkpoint files."""
+    n = len(probe.frame)
+    step = max(1, n // rows)
+    out = []
+    for start in range(0, n, step):
+        stretch = [t for t in probe.periods()[max(1, start):start + step] if t == t]
+        end = min(n, start + step) - 1
+        out.append({"frames": f"{probe.frame[start]}-{probe.frame[end]}",
+                    "median_ms": 1000 * statistics.median(stretch) if stretch else float("nan"),
+                    "rss_mib": probe.rss_mib[end], "gaussians": probe.gaussians[end],
+                    "checkpoint_files": probe.checkpoint_files[end]})
+    return out
+
+
+def git_commit() -> str:
+    try:
+        out = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+        dirty = subprocess.run(["git", "-C", str(REPO), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True).stdout.strip()
+        return out.stdout.strip() + (" (with uncommitted changes)" if dirty else "")
+    except OSError:
+        return "unknown"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--frames", type=int, default=500)
+    parser.add_argument("--laps", type=int, default=None, help="laps of the loop (default: >= 240 frames per lap)")
+    parser.add_argument("--width", type=int, default=80)
+    parser.add_argument("--height", type=int, default=60)
+    parser.add_argument("--preset", default="fast")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--rows", type=int, default=10, help="rows of the printed curves")
+    parser.add_argument("--json", type=Path, help="write the per-frame curves, checks and settings here")
+    parser.add_argument("--keep", type=Path, help="work in this folder and keep it (default: a temporary folder)")
+    args = parser.parse_args(argv)
+    laps = args.laps or default_laps(args.frames)
+    work = args.keep or Path(tempfile.mkdtemp(prefix="mipslam_long_run_"))
+    try:
+        sequence, run_dir = work / "sequence", work / "run"
+        started = time.perf_counter()
+        if not (sequence / "synth.json").is_file():
+            data_synth.generate(sequence, layout="replica", trajectory="loop", width=args.width, height=args.height,
+                                frames=args.frames, laps=laps, seed=0, supersample=2, overwrite=True)
+        generation_s = time.perf_counter() - started
+        shutil.rmtree(run_dir, ignore_errors=True)
+        overrides = [f"dataset.path={sequence}", f"run.threads={args.threads}", *args.overrides]
+        config = load_config(REPO / "configs" / "synthetic.yaml", preset=args.preset, overrides=overrides)
+        probe = FrameProbe(run_dir / "checkpoints")
+        rss_start = rss_mib()
+        started = time.perf_counter()
+        summary = run_slam(config, run_dir, evaluate=False, hooks=PipelineHooks(after_tracking=probe))
+        run_s = time.perf_counter() - started
+        probe.finish(summary.gaussians)
+        metrics = evaluate_trajectory(read_tum_trajectory(run_dir / "traj_gt.txt"),
+                                      read_tum_trajectory(run_dir / "traj_est.txt"), association="index").to_dict()
+        results = checks(probe, args.frames, laps, config.run.keep_checkpoints)
+        rows = curve_rows(probe, args.rows)
+
+        print(f"long run: {args.frames} frames ({laps} laps) at {args.width}x{args.height}, preset {args.preset}, "
+              f"{args.threads} thread(s), commit {git_commit()}")
+        print(f"generation {generation_s:.0f} s, run {run_s:.0f} s ({args.frames / run_s:.2f} frames/s), "
+              f"{summary.keyframes} keyframes, {summary.gaussians} Gaussians, {summary.flagged} frames flagged, "
+              f"ATE RMSE {metrics['ate']['rmse'] * 100:.2f} cm; RSS before the run {rss_start:.0f} MiB")
+        print(f"{'frames':>11} {'median ms':>9} {'RSS MiB':>8} {'Gaussians':>9} {'ckpt files':>10}")
+        for row in rows:
+            print(f"{row['frames']:>11} {row['median_ms']:>9.0f} {row['rss_mib']:>8.0f} {row['gaussians']:>9} "
+                  f"{row['checkpoint_files']:>10}")
+        for name, passed, text in results:
+            print(f"{'PASS' if passed else 'FAIL'}  {name}: {text}")
+        if args.json:
+            args.json.write_text(json.dumps({
+                "frames": args.frames, "laps": laps, "width": args.width, "height": args.height,
+                "preset": args.preset, "threads": args.threads, "overrides": args.overrides, "commit": git_commit(),
+                "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__},
+                "generation_s": generation_s, "run_s": run_s, "keyframes": summary.keyframes,
+                "gaussians": summary.gaussians, "flagged": summary.flagged, "ate_rmse_m": metrics["ate"]["rmse"],
+                "checks": [{"name": n, "passed": p, "detail": t} for n, p, t in results],
+                "curve_rows": rows,
+                "per_frame": {"frame": probe.frame, "seconds": [None if t != t else t for t in probe.periods()],
+                              "rss_mib": probe.rss_mib, "gaussians": probe.gaussians,
+                              "checkpoint_files": probe.checkpoint_files},
+            }, indent=1) + "\n")
+        return 0 if all(passed for _, passed, _ in results) else 1
+    finally:
+        if args.keep is None:
+            shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
