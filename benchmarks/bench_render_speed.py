@@ -13,7 +13,16 @@ Measured in one process, interleaved (so the machine's load hits both backends a
    the (tile, Gaussian) pairs x 256 ("tile pairs", what a 16x16 tile rasterizer resolves), both for the
    whole forward (projection included) and for the C++ stage alone;
 3. ``eaa`` at the default node budget against ``point`` on the cpu backend (forward, forward+backward);
-4. pose-only backward (``pose_only=True``: the viewmat alone needs a gradient) against the full backward.
+4. pose-only backward (``pose_only=True``: the viewmat alone needs a gradient) against the full backward;
+5. with ``--run DIR`` (repeatable): the renderer as the SLAM code calls it, on the map of a mipslam run
+   folder (``map.ply``, the pose of its middle frame from ``traj_est.txt``, its intrinsics scaled by each
+   of ``--scales``, its render config: mode, EAA budget, ...): per call the forward, the pose-only
+   backward (tracking) and the full backward (mapping), each split into the time inside the C++ kernels
+   (every call into the extension, timed by ``mipslam.render.cpu.profile_kernels``) and the rest (Python,
+   torch and autograd glue). Two paths, interleaved: ``fused`` (the C++ projection, the cpu backend's
+   path) and ``unfused`` (the torch projection with its autograd in front of the same C++ rasterizer,
+   the path before the fused projection). The backward is driven by fixed random incoming gradients
+   of color, depth and alpha (no loss operations in the timings).
 
 Peak memory of one forward+backward per backend: a fresh child process renders a tiny warm-up image,
 resets the kernel's peak-RSS counter (``/proc/self/clear_refs`` <- 5), runs the full-size forward+backward
@@ -25,6 +34,7 @@ otherwise maps and unmaps its large temporaries on every call, about 2x slower).
 
     .venv/bin/python benchmarks/bench_render_speed.py                 # full run (several minutes)
     .venv/bin/python benchmarks/bench_render_speed.py --quick         # smaller, for a smoke test
+    .venv/bin/python benchmarks/bench_render_speed.py --glue-only --run RUN_DIR [--run RUN_DIR2] --scales 1,2
 """
 from __future__ import annotations
 
@@ -55,6 +65,10 @@ def parse_args(argv=None):
     p.add_argument("--no-malloc-tuning", action="store_true")
     p.add_argument("--quick", action="store_true", help="160x120, 5000 Gaussians, 3/1 repeats")
     p.add_argument("--json", type=Path, default=None, help="also write the results here")
+    p.add_argument("--run", type=Path, action="append", default=[],
+                   help="a mipslam run folder whose map is rendered for the kernel/glue split (repeatable)")
+    p.add_argument("--scales", default="1,2", help="render scales of each --run's intrinsics (1 = mapping size)")
+    p.add_argument("--glue-only", action="store_true", help="only the --run measurements (section 5)")
     p.add_argument("--memory-child", choices=("cpu", "torch"), default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.quick:
@@ -169,6 +183,108 @@ def load_average() -> str:
         return "n/a"
 
 
+def load_run_scene(torch, run_dir: Path):
+    """(params [means, quats, scales, opacities, colors, viewmat], intrinsics, mode, options) of a run folder:
+    its map, the pose of the middle frame of its estimated trajectory, its dataset's intrinsics, its render
+    config."""
+    from mipslam.datasets import make_sequence
+    from mipslam.evaluation.run_files import read_run_config
+    from mipslam.geometry.se3 import se3_inverse
+    from mipslam.io.ply import read_map_ply
+    from mipslam.io.run_folder import RunFolder
+    from mipslam.io.tum import read_tum_trajectory
+    from mipslam.rendering import render_options
+
+    config = read_run_config(RunFolder(run_dir))
+    intrinsics = make_sequence(config.dataset).intrinsics
+    gaussians = read_map_ply(run_dir / "map.ply").activated()
+    trajectory = read_tum_trajectory(run_dir / "traj_est.txt")
+    T_wc = torch.tensor(trajectory.T_wc[len(trajectory.T_wc) // 2], dtype=torch.float64)
+    viewmat = se3_inverse(T_wc).float()
+    params = [t.detach().contiguous() for t in (gaussians.means, gaussians.quats, gaussians.scales,
+                                                 gaussians.opacities, gaussians.colors)] + [viewmat]
+    return params, intrinsics, config.render.mode, render_options(config.render)
+
+
+def glue_iteration(torch, cpu_backend, render_call, params, K, width, height, pose_only, grads):
+    """One forward and backward: (forward wall, forward kernels, backward wall, backward kernels, iteration
+    process CPU time, kernels' process CPU time) in seconds."""
+    viewmat = params[5].clone().requires_grad_()
+    if pose_only:
+        gaussians = params[:5]
+    else:
+        gaussians = [t.clone().requires_grad_() for t in params[:5]]
+    cpu_start = time.process_time()
+    with cpu_backend.profile_kernels() as kernels_fwd:
+        with Timer() as fwd:
+            out = render_call(*gaussians, viewmat, K, width, height, pose_only)
+    with cpu_backend.profile_kernels() as kernels_bwd:
+        with Timer() as bwd:
+            torch.autograd.backward([out.color, out.depth, out.alpha], grads)
+    return (fwd.wall, kernels_fwd.total, bwd.wall, kernels_bwd.total, time.process_time() - cpu_start,
+            kernels_fwd.total_cpu + kernels_bwd.total_cpu)
+
+
+def measure_glue(args, torch, info):
+    """Section 5: kernel/glue split per call on the maps of --run folders. Returns (rows, markdown lines)."""
+    from mipslam.render import RenderOptions, rasterize
+    from mipslam.render import cpu as cpu_backend
+
+    scales = [float(x) for x in args.scales.split(",") if x.strip()]
+    rows = []
+    for run_dir in args.run:
+        params, intrinsics, mode, options = load_run_scene(torch, run_dir)
+        opts = RenderOptions(**options)
+        paths = {
+            "fused": lambda *a, pose_only, **_: rasterize(*a, mode=mode, backend="cpu", pose_only=pose_only,
+                                                          **options),
+            "unfused": lambda *a, pose_only, **_: cpu_backend.rasterize_unfused(
+                *a, mode=mode, options=RenderOptions(**{**options, "pose_only": pose_only})),
+        }
+        for scale in scales:
+            cam = intrinsics.scaled(scale) if scale != 1.0 else intrinsics
+            W, H = cam.width, cam.height
+            K = cam.matrix(dtype=torch.float32, device="cpu")
+            g = torch.Generator().manual_seed(args.seed)
+            grads = [torch.rand(H, W, params[4].shape[1], generator=g), torch.randn(H, W, generator=g),
+                     torch.randn(H, W, generator=g)]
+            samples = {}
+            for r in range(args.repeats + 1):  # the first round warms up
+                for path, call in paths.items():
+                    for pose_only in (True, False):
+                        result = glue_iteration(torch, cpu_backend, lambda *a: call(*a[:-1], pose_only=a[-1]),
+                                                params, K, W, H, pose_only, grads)
+                        if r > 0:
+                            samples.setdefault((path, pose_only), []).append(result)
+            with torch.no_grad():
+                n_visible = rasterize(*params, K, W, H, mode=mode, backend="cpu", **options).n_visible
+            for (path, pose_only), runs in samples.items():
+                med = [1e3 * median([x[i] for x in runs]) for i in range(6)]
+                iteration = 1e3 * median([x[0] + x[2] for x in runs])
+                kernels = 1e3 * median([x[1] + x[3] for x in runs])
+                rows.append({"run": str(run_dir), "size": f"{W}x{H}", "gaussians": int(params[0].shape[0]),
+                             "visible": n_visible, "mode": mode, "eaa_max_nodes": int(opts.eaa_max_nodes),
+                             "path": path, "pose_only": pose_only, "forward_ms": med[0], "forward_kernels_ms": med[1],
+                             "backward_ms": med[2], "backward_kernels_ms": med[3], "iteration_cpu_ms": med[4],
+                             "iteration_kernels_cpu_ms": med[5],
+                             "iteration_ms": iteration, "iteration_kernels_ms": kernels})
+            print(f"  {run_dir} at {W}x{H} done (load {load_average()})", flush=True)
+    lines = ["", f"Per call on run maps ({info['threads']} threads; medians of {args.repeats}; kernels = time inside "
+             "the C++ extension; glue = the rest of the call):", "",
+             "| map (Gaussians, visible) | size | path | call | forward (kernels) | backward (kernels) | "
+             "iteration | kernels | glue | glue share | glue share of CPU time |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        glue = row["iteration_ms"] - row["iteration_kernels_ms"]
+        lines.append(
+            f"| {Path(row['run']).name} ({row['gaussians']}, {row['visible']}) | {row['size']} | {row['path']} | "
+            f"{'pose-only' if row['pose_only'] else 'full'} | {row['forward_ms']:.2f} ({row['forward_kernels_ms']:.2f}) | "
+            f"{row['backward_ms']:.2f} ({row['backward_kernels_ms']:.2f}) | {row['iteration_ms']:.2f} ms | "
+            f"{row['iteration_kernels_ms']:.2f} ms | {glue:.2f} ms | **{100 * glue / row['iteration_ms']:.1f} %** | "
+            f"{100 * (1 - row['iteration_kernels_cpu_ms'] / row['iteration_cpu_ms']):.1f} % |")
+    return rows, lines
+
+
 def main(argv=None):
     args = parse_args(argv)
     if args.memory_child:
@@ -194,6 +310,19 @@ def main(argv=None):
             "load_before": load_average(), "malloc_tuning": not args.no_malloc_tuning}
     print(f"# {info['scene']}, {args.threads} threads, {info['cpu']}, torch {info['torch']}, "
           f"extension [{info['build']}], load average {info['load_before']}", flush=True)
+
+    if args.glue_only:
+        if not args.run:
+            print("--glue-only needs at least one --run folder")
+            return 2
+        rows, lines = measure_glue(args, torch, info)
+        info["load_after"] = load_average()
+        print(f"load average {info['load_before']} -> {info['load_after']}")
+        print("\n".join(lines))
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps({"info": info, "glue": rows}, indent=2))
+        return 0
 
     results = {}
 
@@ -229,7 +358,8 @@ def main(argv=None):
             total.append(t)
         record(tag + "/fwd+bwd", total)
 
-    # 2: forward rate, point mode (no autograd), whole call and the C++ stage alone
+    # 2: forward rate, point mode (no autograd), whole call and the C++ rasterizer alone (its time inside the
+    # whole call, timed by profile_kernels); the lane and pair counts come from one rasterize_projected call
     opts = RenderOptions()
     fwd_timers, stage_timers = [], []
     with torch.no_grad():
@@ -240,16 +370,19 @@ def main(argv=None):
                                      point_area=opts.eaa_point_area, exact_order=opts.exact_order)
         image = cpu_backend.rasterize_projected(proj, W, H, settings)
         for _ in range(args.repeats):
-            with Timer() as t:
-                rasterize(*params[:5], params[5], K, W, H, mode="point", backend="cpu")
+            with cpu_backend.profile_kernels() as kernels:
+                with Timer() as t:
+                    rasterize(*params[:5], params[5], K, W, H, mode="point", backend="cpu")
             fwd_timers.append(t)
-            with Timer() as t:
-                cpu_backend.rasterize_projected(proj, W, H, settings)
-            stage_timers.append(t)
+            stage = Timer()
+            stage.wall, stage.cpu = kernels.seconds["rasterize_forward"], kernels.cpu_seconds["rasterize_forward"]
+            stage_timers.append(stage)
     record("cpu/point/forward_nograd", fwd_timers)
     record("cpu/point/raster_stage", stage_timers)
     lanes, pairs = image.lanes_evaluated, image.pairs
     results["lanes_evaluated"], results["tile_pairs"] = lanes, pairs
+
+    glue_rows, glue_lines = measure_glue(args, torch, info) if args.run else ([], [])
 
     # memory
     memory = {}
@@ -282,10 +415,11 @@ def main(argv=None):
         ratio = f"**{mem_c / mem_t:.3f}**" if mem_c is not None and mem_t else "n/a"
         lines.append(f"| peak RSS increase, fwd+bwd point | {fmt(mem_c)} | {fmt(mem_t)} | {ratio} | <= 0.25 |")
     threads = args.threads
-    for key, label in (("cpu/point/forward_nograd", "whole forward"), ("cpu/point/raster_stage", "C++ stage")):
-        t = ms(key) / 1e3
+    for key, label in (("cpu/point/forward_nograd", "whole forward"), ("cpu/point/raster_stage", "C++ rasterizer")):
+        t, t_cpu = ms(key) / 1e3, ms(key, "cpu_ms") / 1e3
         lines.append(f"| point forward rate, {label} ({ms(key):.1f} ms) | {lanes / t / threads:.3g} lanes/s/thread; "
-                     f"{pairs * 256 / t / threads:.3g} tile-pair px/s/thread | | | >= 1e9 /s/core |")
+                     f"{pairs * 256 / t / threads:.3g} tile-pair px/s/thread (per CPU second: {lanes / t_cpu:.3g}; "
+                     f"{pairs * 256 / t_cpu:.3g}) | | | >= 1e9 /s/core |")
     for what in ("fwd", "fwd+bwd"):
         e, p = ms(f"cpu/eaa/full/{what}"), ms(f"cpu/point/full/{what}")
         lines.append(f"| eaa / point, {what} (cpu) | {e:.1f} / {p:.1f} ms | | **{e / p:.2f}x** | <= 1.5x |")
@@ -300,10 +434,11 @@ def main(argv=None):
     detail = ["", "| timing (median) | wall ms | cpu ms |", "|---|---|---|"]
     detail += [f"| {k} | {v['wall_ms']:.1f} | {v['cpu_ms']:.1f} |" for k, v in sorted(results.items())
                if isinstance(v, dict)]
-    print("\n".join(lines + detail))
+    print("\n".join(lines + glue_lines + detail))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"info": info, "results": results, "memory_mib": memory}, indent=2))
+        args.json.write_text(json.dumps({"info": info, "results": results, "memory_mib": memory,
+                                         "glue": glue_rows}, indent=2))
     return 0
 
 

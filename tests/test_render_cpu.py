@@ -341,3 +341,193 @@ def test_cache_key_follows_sources_and_flags(tmp_path):
     assert cpu_backend._build_key(["-O3"], [], compiler) == base
     assert Path(cpu_backend.cache_root()).name == "torch_extensions"
     assert math.isfinite(len(base)) and len(base) == 16
+
+
+# --- fused projection (projection.h) against the torch reference ------------------------------------
+from mipslam.render import RenderOptions  # noqa: E402
+
+PROJECTION_CASES = [
+    ("point", {}),
+    ("mip", {}),
+    ("ewa", {}),
+    ("eaa", {"eaa_max_nodes": 6, "eaa_gamma": 1.0}),
+    ("exact", {}),
+    ("mip", {"filter_3d_scale": 0.2}),
+    ("eaa", {"filter_3d_scale": 0.2, "eaa_max_nodes": 3}),
+    ("point", {"filter_3d_scale": 0.2, "max_sampling_rate": "given"}),
+]
+PARAM_NAMES = ("means", "quats", "scales", "opacities", "viewmat")
+
+
+def projection_inputs(scene, viewmat, dtype, pose_only=False):
+    """(means, quats, scales, opacities, colors, viewmat) as fresh leaves of ``dtype``."""
+    params = [t.to(dtype).clone().requires_grad_(not pose_only) for t in scene[:4]]
+    return params + [scene[4].to(dtype), viewmat.to(dtype).clone().requires_grad_()]
+
+
+def project_both(scene, viewmat, K, width, height, mode, options, dtype):
+    """The fused projection and the torch reference on the same inputs, each backpropagated from the same
+    random weighting of means2d, depths, cov and opacities. Returns (fused, reference, grads_f, grads_r)."""
+    results, grads = [], []
+    for project in (cpu_backend.project_footprints, cpu_backend.reference_footprints):
+        inputs = projection_inputs(scene, viewmat, dtype)
+        out = project(*inputs[:5], inputs[5], K.to(dtype), width, height, mode=mode, options=options)
+        g = torch.Generator().manual_seed(11)
+        loss = sum((getattr(out, name) * torch.randn(getattr(out, name).shape, generator=g, dtype=dtype)).sum()
+                   for name in ("means2d", "depths", "cov", "opacities"))
+        loss.backward()
+        results.append(out)
+        grads.append([inputs[i].grad for i in (0, 1, 2, 3, 5)])
+    return results[0], results[1], grads[0], grads[1]
+
+
+def assert_projection_close(fused, ref, rtol):
+    assert torch.equal(fused.visible, ref.visible)
+    assert fused.n_visible == ref.n_visible == int(ref.visible.sum())
+    assert torch.equal(fused.node_counts, ref.node_counts)
+    torch.testing.assert_close(fused.depths, ref.depths, rtol=rtol, atol=0.0)
+    torch.testing.assert_close(fused.means2d, ref.means2d, rtol=rtol, atol=rtol * 100)  # px; 100 px ~ image
+    torch.testing.assert_close(fused.opacities, ref.opacities, rtol=rtol, atol=rtol * 1e-2)
+    torch.testing.assert_close(fused.radii, ref.radii, rtol=rtol, atol=0.0)
+    # the covariance relative to its own size: xx, yy to the larger variance, xy to sqrt(xx yy), det to xx yy
+    xx, xy, yy, det = ref.cov.detach().unbind(-1)
+    scale = torch.stack([torch.maximum(xx, yy), torch.sqrt(xx * yy), torch.maximum(xx, yy), xx * yy], -1)
+    err = ((fused.cov.detach() - ref.cov.detach()).abs() / scale).max().item()
+    assert err <= rtol, f"covariance differs by {err:.2e} of its size"
+
+
+@pytest.mark.parametrize("mode,options", PROJECTION_CASES, ids=[f"{m}-{i}" for i, (m, _) in enumerate(PROJECTION_CASES)])
+def test_fused_projection_equals_the_torch_reference(ext, mode, options):
+    """Values (rtol 1e-5, covariance relative to its size) and the gradient of every input (1e-5 of the
+    largest entry) on random Gaussians (sub-pixel, large, elongated, partly off screen) and the extreme rows
+    (NaN/Inf, behind the camera, near plane, depth 1e6, scales 1e-8 and 1e3, anisotropy 1e6, opacity 0/1,
+    zero quaternion)."""
+    width, height, focal = 32, 24, 30.0
+    viewmat, K = camera(width, height, focal)
+    scenes = [(mixed_scene(200, width, height, focal, seed=21), viewmat, K, width, height)]
+    Ke = torch.tensor([[10.0, 0.0, 7.5], [0.0, 10.0, 5.5], [0.0, 0.0, 1.0]])
+    scenes.append((extreme_scene(), torch.eye(4), Ke, 16, 12))
+    for scene, view, Kc, w, h in scenes:
+        opts = dict(options)
+        if opts.get("max_sampling_rate") == "given":
+            opts["max_sampling_rate"] = 10.0 + 50.0 * torch.rand(scene[0].shape[0],
+                                                                 generator=torch.Generator().manual_seed(2))
+        fused, ref, grads_f, grads_r = project_both(scene, view, Kc, w, h, mode, RenderOptions(**opts),
+                                                    torch.float32)
+        assert ref.visible.any() and not ref.visible.all()
+        assert_projection_close(fused, ref, rtol=1e-5)
+        for name, gf, gr in zip(PARAM_NAMES, grads_f, grads_r):
+            assert torch.isfinite(gf).all(), f"gradient of {name} not finite"
+            assert gr.abs().max() > 0, f"the reference gradient of {name} is zero (test is vacuous)"
+            torch.testing.assert_close(gf, gr, rtol=1e-4, atol=1e-5 * gr.abs().max().item(), msg=name)
+
+
+@pytest.mark.parametrize("mode,options", PROJECTION_CASES, ids=[f"{m}-{i}" for i, (m, _) in enumerate(PROJECTION_CASES)])
+def test_fused_projection_in_float64_equals_the_reference_to_rounding(ext, mode, options):
+    width, height, focal = 32, 24, 30.0
+    viewmat, K = camera(width, height, focal, dtype=torch.float64)
+    scene = mixed_scene(120, width, height, focal, seed=22)
+    opts = dict(options)
+    if opts.get("max_sampling_rate") == "given":
+        opts["max_sampling_rate"] = 10.0 + 50.0 * torch.rand(120, generator=torch.Generator().manual_seed(3),
+                                                             dtype=torch.float64)
+    fused, ref, grads_f, grads_r = project_both(scene, viewmat, K, width, height, mode, RenderOptions(**opts),
+                                                torch.float64)
+    assert_projection_close(fused, ref, rtol=1e-12)
+    for name, gf, gr in zip(PARAM_NAMES, grads_f, grads_r):
+        torch.testing.assert_close(gf, gr, rtol=1e-10, atol=1e-12 * gr.abs().max().item(), msg=name)
+
+
+@pytest.mark.parametrize("mode,options", [("point", {}), ("mip", {}), ("eaa", {"filter_3d_scale": 0.2}),
+                                          ("ewa", {"filter_3d_scale": 0.2})])
+def test_fused_projection_backward_passes_gradcheck(ext, mode, options):
+    """The hand-written backward against finite differences (float64), every input including the viewmat."""
+    from test_render_gradients import tiny_scene
+
+    means, quats, scales, opacities, colors, viewmat, K = tiny_scene()
+    opts = RenderOptions(**options)
+
+    def project(m, q, s, o, v):
+        out = cpu_backend.project_footprints(m, q, s, o, colors, v, K, 4, 3, mode=mode, options=opts)
+        return out.means2d, out.depths, out.cov, out.opacities
+
+    inputs = tuple(t.clone().requires_grad_() for t in (means, quats, scales, opacities, viewmat))
+    assert cpu_backend.project_footprints(*inputs[:4], colors, inputs[4], K, 4, 3, mode=mode,
+                                          options=opts).visible.all()
+    assert torch.autograd.gradcheck(project, inputs, eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_fused_projection_pose_only_and_thread_count_determinism(ext):
+    """Only the viewmat needing a gradient gives the same viewmat gradient (bit for bit) as the full
+    backward; that gradient is a fixed-order reduction, identical for 1, 2 and 3 threads (N is above the
+    size from which the projection runs in parallel)."""
+    width, height, focal = 64, 48, 60.0
+    viewmat, K = camera(width, height, focal)
+    scene = mixed_scene(6000, width, height, focal, seed=23)
+    opts = RenderOptions(filter_3d_scale=0.2)
+    threads = torch.get_num_threads()
+    results = []
+    try:
+        for n_threads, pose_only in ((threads, False), (threads, True), (1, True), (3, True)):
+            torch.set_num_threads(n_threads)
+            inputs = projection_inputs(scene, viewmat, torch.float32, pose_only=pose_only)
+            out = cpu_backend.project_footprints(*inputs[:5], inputs[5], K, width, height, mode="mip", options=opts)
+            weights = torch.linspace(-1.0, 1.0, out.cov.numel()).reshape(out.cov.shape)
+            ((out.cov * weights).sum() + out.means2d.sum() + out.depths.sum() + out.opacities.sum()).backward()
+            assert (inputs[0].grad is None) == pose_only
+            results.append(inputs[5].grad)
+    finally:
+        torch.set_num_threads(threads)
+    assert results[0].abs().max() > 0
+    for g in results[1:]:
+        assert torch.equal(g, results[0])
+
+
+def test_camera_gradient_uses_the_torch_projection(ext):
+    """K (and a differentiable sampling rate) are constants of the fused projection: when they need a
+    gradient the cpu backend puts the torch projection in front of its rasterizer, and agrees with torch."""
+    width, height, focal = 24, 18, 22.0
+    viewmat, K = camera(width, height, focal)
+    scene = mixed_scene(60, width, height, focal, seed=24)
+    grads = {}
+    for backend in ("torch", "cpu"):
+        K_leaf = K.clone().requires_grad_()
+        out = rasterize(*scene, viewmat, K_leaf, width, height, mode="eaa", backend=backend)
+        assert out.backend == backend
+        (out.color.sum() + out.alpha.sum()).backward()
+        grads[backend] = K_leaf.grad
+    assert grads["torch"].abs().max() > 0 and cosine(grads["torch"], grads["cpu"]) >= 0.999
+
+
+@pytest.mark.parametrize("bad", ["nan_pose", "inf_K", "negative_focal"])
+def test_invalid_cameras_raise_render_errors_on_the_cpu_backend(ext, bad):
+    from mipslam.errors import RenderError
+
+    width, height, focal = 16, 12, 14.0
+    viewmat, K = camera(width, height, focal)
+    scene = mixed_scene(10, width, height, focal)
+    if bad == "nan_pose":
+        viewmat = viewmat.clone()
+        viewmat[0, 3] = float("nan")
+    elif bad == "inf_K":
+        K = K.clone()
+        K[0, 2] = float("inf")
+    else:
+        K = K.clone()
+        K[1, 1] = -focal
+    with pytest.raises(RenderError, match="finite|focal lengths must be positive"):
+        rasterize(*scene, viewmat, K, width, height, backend="cpu")
+
+
+def test_profile_kernels_times_each_extension_call(ext):
+    width, height, focal = 16, 12, 14.0
+    viewmat, K = camera(width, height, focal)
+    inputs = [t.clone().requires_grad_() for t in mixed_scene(30, width, height, focal)]
+    with cpu_backend.profile_kernels() as forward:
+        out = rasterize(*inputs, viewmat, K, width, height, backend="cpu")
+    with cpu_backend.profile_kernels() as backward:
+        out.color.sum().backward()
+    assert forward.calls == {"project_forward": 1, "rasterize_forward": 1}
+    assert backward.calls == {"rasterize_backward": 1, "project_backward": 1}
+    assert forward.total > 0 and backward.total > 0
+    assert not isinstance(cpu_backend.load_extension(), cpu_backend._TimedExtension)

@@ -90,6 +90,9 @@ class RenderOptions:
                 raise RenderError(f"render option: {message}")
 
 
+_OPTION_NAMES = frozenset(f.name for f in fields(RenderOptions))
+
+
 @dataclass(frozen=True)
 class RenderOutput:
     """Rendered images and per-Gaussian bookkeeping.
@@ -170,6 +173,10 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, he
         raise RenderError(f"rasterize: all inputs must be on one device, got {sorted({str(t.device) for t in tensors})}")
     if int(width) != width or int(height) != height or width < 1 or height < 1:
         raise RenderError(f"rasterize: width and height must be integers >= 1, got {width} x {height}")
+
+
+def _check_camera_values(viewmat, K):
+    """The camera's values (the cpu backend checks them in C++, without these tensor operations)."""
     if not (torch.isfinite(viewmat).all() and torch.isfinite(K).all()):
         raise RenderError("rasterize: viewmat and K must be finite (a NaN pose cannot be rendered; check the "
                           "tracking result that produced it)")
@@ -191,10 +198,9 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
         raise RenderError(f"rasterize: unknown mode '{mode}'; choose one of {', '.join(MODES)}")
     if backend not in BACKENDS:
         raise RenderError(f"rasterize: unknown backend '{backend}'; choose one of {', '.join(BACKENDS)}")
-    valid_names = {f.name for f in fields(RenderOptions)}
-    unknown = sorted(set(options) - valid_names)
-    if unknown:
-        raise RenderError(f"rasterize: unknown option(s) {unknown}; valid options: {sorted(valid_names)}")
+    if not _OPTION_NAMES.issuperset(options):
+        unknown = sorted(set(options) - _OPTION_NAMES)
+        raise RenderError(f"rasterize: unknown option(s) {unknown}; valid options: {sorted(_OPTION_NAMES)}")
     opts = RenderOptions(**options)
     _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height)
     width, height = int(width), int(height)
@@ -217,6 +223,7 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
                 "or 'auto'")
     elif backend == "cpu":
         raise BackendUnavailableError(f"rasterize: the 'cpu' backend needs CPU tensors, got {means.device}")
+    _check_camera_values(viewmat, K)
     return rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width, height, mode, opts)
 
 

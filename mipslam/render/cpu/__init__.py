@@ -26,7 +26,9 @@ run on this machine).
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import functools
 import hashlib
 import logging
 import os
@@ -34,22 +36,25 @@ import platform
 import shutil
 import subprocess
 import threading
+import time
 from pathlib import Path
 
 import torch
 
 from mipslam.errors import BackendUnavailableError, RenderError
-from mipslam.render import footprint
+from mipslam.render import footprint, projection
 
 log = logging.getLogger(__name__)
 
 __all__ = ["is_available", "unavailable_reason", "unsupported_reason", "load_extension", "rasterize",
-           "rasterize_projected", "RasterizeProjected", "build_flags", "MODE_IDS", "SUPPORTED_CHANNELS",
-           "MAX_ROWS"]
+           "rasterize_unfused", "rasterize_projected", "RasterizeProjected", "ProjectFootprints",
+           "project_footprints", "reference_footprints", "FootprintProjection", "profile_kernels", "KernelTimes",
+           "build_flags", "MODE_IDS",
+           "SUPPORTED_CHANNELS", "MAX_ROWS"]
 
 _SOURCE_DIR = Path(__file__).resolve().parent
 _SOURCES = ("raster_ext.cpp",)
-_HEADERS = ("footprint_simd.h", "simd_math.h")
+_HEADERS = ("footprint_simd.h", "simd_math.h", "projection.h")
 #: Footprint kernels of the extension: point/mip/ewa are all a centre sample of the mode's covariance.
 MODE_IDS = {"point": 0, "mip": 0, "ewa": 0, "eaa": 1, "exact": 2}
 #: Colour channel counts the extension is compiled for (template parameter, not a runtime loop bound).
@@ -58,7 +63,7 @@ SUPPORTED_CHANNELS = (1, 3, 4)
 MAX_ROWS = 64
 
 _lock = threading.Lock()
-_state: dict = {"module": None, "reason": None, "tried": False}
+_state: dict = {"module": None, "reason": None, "tried": False, "timed": None}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -155,6 +160,9 @@ def _build():
 
 def load_extension():
     """The compiled extension module (built on first call). Raises BackendUnavailableError with the reason."""
+    timed = _state["timed"]
+    if timed is not None:
+        return timed
     with _lock:
         if _state["module"] is not None:
             return _state["module"]
@@ -171,6 +179,67 @@ def load_extension():
             log.warning("mipslam cpu rasterizer unavailable, using the torch backend instead: %s", _state["reason"])
             raise BackendUnavailableError(f"the cpu backend is not available: {_state['reason']}")
         return _state["module"]
+
+
+class _TimedExtension:
+    """The extension with every function call timed (wall and process CPU seconds, call count per name)."""
+
+    def __init__(self, module, times: "KernelTimes"):
+        self._module, self._times = module, times
+
+    def __getattr__(self, name):
+        attr = getattr(self._module, name)
+        if not callable(attr):
+            return attr
+
+        def timed(*args):
+            start, start_cpu = time.perf_counter(), time.process_time()
+            try:
+                return attr(*args)
+            finally:
+                times = self._times
+                times.seconds[name] = times.seconds.get(name, 0.0) + time.perf_counter() - start
+                times.cpu_seconds[name] = times.cpu_seconds.get(name, 0.0) + time.process_time() - start_cpu
+                times.calls[name] = times.calls.get(name, 0) + 1
+
+        return timed
+
+
+@dataclasses.dataclass
+class KernelTimes:
+    """Time spent inside the C++ extension's functions, per function name: wall seconds, process CPU
+    seconds (all threads: core-seconds, robust to a loaded machine) and call counts."""
+
+    seconds: dict
+    cpu_seconds: dict
+    calls: dict
+
+    @property
+    def total(self) -> float:
+        """Wall seconds inside the extension."""
+        return sum(self.seconds.values())
+
+    @property
+    def total_cpu(self) -> float:
+        """Process CPU seconds inside the extension."""
+        return sum(self.cpu_seconds.values())
+
+
+@contextlib.contextmanager
+def profile_kernels():
+    """Time every call into the extension made inside the block (benchmarks: kernel time against the whole
+    call; the Python and torch work around the kernels is the difference). Not thread-safe; not nestable.
+
+        with profile_kernels() as kernels:
+            out = rasterize(...)
+        kernels.total, kernels.seconds["rasterize_forward"]
+    """
+    times = KernelTimes(seconds={}, cpu_seconds={}, calls={})
+    _state["timed"] = _TimedExtension(load_extension(), times)
+    try:
+        yield times
+    finally:
+        _state["timed"] = None
 
 
 def is_available() -> bool:
@@ -190,7 +259,7 @@ def unavailable_reason() -> str | None:
 def _reset_for_tests() -> None:
     """Forget the load attempt (tests monkeypatch the build and try again)."""
     with _lock:
-        _state.update(module=None, reason=None, tried=False)
+        _state.update(module=None, reason=None, tried=False, timed=None)
 
 
 def unsupported_reason(means: torch.Tensor, colors: torch.Tensor, mode: str, options) -> str | None:
@@ -209,8 +278,159 @@ def unsupported_reason(means: torch.Tensor, colors: torch.Tensor, mode: str, opt
 
 
 # ------------------------------------------------------------------------------------------------
-# Autograd
+# Fused projection (projection.h)
 # ------------------------------------------------------------------------------------------------
+# Order of the parameter vector of projection.h (enum ProjectionParam).
+_PROJECTION_PARAM_NAMES = (
+    "near", "far", "extent_sigma", "extent_pad", "extent_dilation", "filter_scale", "dilation", "dilation_sq",
+    "energy", "eaa", "max_nodes", "gamma", "point_area", "radius_sigma", "radius_pad", "cov_floor", "cov_floor_sq",
+    "fov_margin", "max_sigma_px", "max_tangent")
+
+
+@functools.lru_cache(maxsize=64)
+def _projection_params(mode: str, near_plane: float, far_plane: float, k_sigma: float, filter_3d_scale: float,
+                       max_nodes: int, gamma: float, point_area: float) -> tuple[float, ...]:
+    """The settings of the fused projection for one mode and option set, exactly as
+    :func:`mipslam.render.rasterize_torch` passes them to the torch reference (cached per option set)."""
+    box_mode = mode in ("eaa", "exact")
+    dilation = footprint.MODE_DILATION.get(mode, 0.0)
+    values = {
+        "near": near_plane, "far": far_plane,
+        "extent_sigma": footprint.EXACT_K_SIGMA if mode == "exact" else k_sigma,
+        "extent_pad": 0.5 if box_mode else 0.0, "extent_dilation": dilation,
+        "filter_scale": float(filter_3d_scale or 0.0),
+        "dilation": dilation, "dilation_sq": dilation * dilation,
+        "energy": 1.0 if mode in footprint.ENERGY_PRESERVING else 0.0, "eaa": 1.0 if mode == "eaa" else 0.0,
+        "max_nodes": float(max_nodes), "gamma": gamma, "point_area": point_area,
+        "radius_sigma": k_sigma, "radius_pad": 0.5 if box_mode else 0.0,
+        "cov_floor": projection.COV_FLOOR, "cov_floor_sq": projection.COV_FLOOR * projection.COV_FLOOR,
+        "fov_margin": projection.FOV_MARGIN, "max_sigma_px": projection.MAX_SIGMA_PX,
+        "max_tangent": projection.MAX_TANGENT,
+    }
+    return tuple(float(values[name]) for name in _PROJECTION_PARAM_NAMES)
+
+
+def _params_for(mode: str, options) -> tuple[float, ...]:
+    return _projection_params(mode, float(options.near_plane), float(options.far_plane), float(options.k_sigma),
+                              float(options.filter_3d_scale or 0.0), int(options.eaa_max_nodes),
+                              float(options.eaa_gamma), float(options.eaa_point_area))
+
+
+class ProjectFootprints(torch.autograd.Function):
+    """Fused projection + footprint parameters + EAA node counts + radii (projection.h), with a hand-written
+    backward to means, quats, scales, opacities and the viewmat (K and the sampling rate are constants).
+
+    Inputs: means [N, 3], quats [N, 4], scales [N, 3], opacities [N], viewmat [4, 4], colors [N, C] (only their
+    finiteness matters here), K [3, 3], max_sampling_rate [N] or None, then plain settings. Outputs: means2d
+    [N, 2] px, depths [N] m, cov [N, 4] (the mode's xx, xy, yy px^2 and det px^4), opacity [N] (the mode's),
+    node_counts [N] int32, visible [N] bool, radii [N] px (the last three without gradient), and the number of
+    visible Gaussians (int).
+    """
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, viewmat, colors, K, rate, width: int, height: int,
+                params: tuple, threads: int):
+        means2d, depths, cov, opacity, node_counts, visible, radii, n_visible = load_extension().project_forward(
+            means, quats, scales, opacities, colors, viewmat, K, rate, width, height, params, threads)
+        ctx.save_for_backward(means, quats, scales, opacities, viewmat, colors, K, rate, visible)
+        ctx.settings = (width, height, params, threads)
+        ctx.set_materialize_grads(False)
+        ctx.mark_non_differentiable(node_counts, visible, radii)
+        # The mode's opacity depends on the geometry only through the energy factor or the 3D filter; without
+        # them and without an opacity gradient it is a constant, so the rasterizer skips its opacity sums.
+        needs = ctx.needs_input_grad
+        geometric = params[_PROJECTION_PARAM_NAMES.index("energy")] != 0.0 \
+            or params[_PROJECTION_PARAM_NAMES.index("filter_scale")] != 0.0
+        if not (needs[3] or (geometric and (any(needs[:3]) or needs[4]))):
+            ctx.mark_non_differentiable(opacity)
+        return means2d, depths, cov, opacity, node_counts, visible, radii, n_visible
+
+    @staticmethod
+    def backward(ctx, g_means2d, g_depths, g_cov, g_opacity, _g_nodes, _g_visible, _g_radii, _g_count):
+        means, quats, scales, opacities, viewmat, colors, K, rate, visible = ctx.saved_tensors
+        width, height, params, threads = ctx.settings
+        needs = ctx.needs_input_grad
+        need_params = any(needs[:4])
+        g_means, g_quats, g_scales, g_opacities, g_viewmat = load_extension().project_backward(
+            means, quats, scales, opacities, colors, viewmat, K, rate, width, height, params, visible, g_means2d,
+            g_depths, g_cov, g_opacity, need_params, bool(needs[4]), threads)
+        return (g_means if needs[0] else None, g_quats if needs[1] else None, g_scales if needs[2] else None,
+                g_opacities if needs[3] else None, g_viewmat if needs[4] else None) + (None,) * 7
+
+
+@dataclasses.dataclass(frozen=True)
+class FootprintProjection:
+    """Per-Gaussian output of the fused projection (aligned with the input order).
+
+    means2d    [N, 2] px    projected centre (-1e6 where not visible)
+    depths     [N]    m     camera-frame z (0 where not visible)
+    cov        [N, 4]       the mode's sampling covariance (xx, xy, yy) px^2 and its determinant px^4
+    opacities  [N]          the mode's opacity (3D filter and energy factor applied; 0 where not visible)
+    node_counts[N]    int32 EAA node count (1 in the other modes)
+    visible    [N]    bool  finite, in front of the near plane, on screen, opacity > 0
+    radii      [N]    px    k-sigma half extent as RenderOutput.radii
+    n_visible  int
+    """
+
+    means2d: torch.Tensor
+    depths: torch.Tensor
+    cov: torch.Tensor
+    opacities: torch.Tensor
+    node_counts: torch.Tensor
+    visible: torch.Tensor
+    radii: torch.Tensor
+    n_visible: int
+
+
+def project_footprints(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, *, mode: str,
+                       options) -> FootprintProjection:
+    """The fused projection (float32 or float64 CPU tensors; differentiable with respect to means, quats,
+    scales, opacities and viewmat). Equals :func:`reference_footprints` (the torch reference) to rounding.
+    ``options``: :class:`mipslam.render.RenderOptions`.
+    """
+    rate = options.max_sampling_rate
+    out = ProjectFootprints.apply(means, quats, scales, opacities, viewmat, colors, K, rate, int(width), int(height),
+                                  _params_for(mode, options), torch.get_num_threads())
+    return FootprintProjection(*out)
+
+
+def reference_footprints(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, *, mode: str,
+                         options) -> FootprintProjection:
+    """What :func:`project_footprints` computes, in torch (the readable reference):
+    :func:`~mipslam.render.projection.project_gaussians` with the mode's extent, then
+    :func:`~mipslam.render.footprint.footprint_parameters`, :func:`~mipslam.render.footprint.eaa_node_counts`
+    and the radii of :func:`mipslam.render.rasterize_torch`."""
+    box_mode = mode in ("eaa", "exact")
+    dilation = footprint.MODE_DILATION.get(mode, 0.0)
+    proj = projection.project_gaussians(
+        means, quats, scales, opacities, colors, viewmat, K, width, height, near_plane=options.near_plane,
+        far_plane=options.far_plane, extent_sigma=footprint.EXACT_K_SIGMA if mode == "exact" else options.k_sigma,
+        extent_pad=0.5 if box_mode else 0.0, extent_dilation=dilation, filter_3d_scale=options.filter_3d_scale,
+        max_sampling_rate=options.max_sampling_rate)
+    xx, xy, yy, det, opacity = footprint.footprint_parameters(mode, *proj.cov2d.unbind(-1), proj.cov_det,
+                                                              proj.opacities)
+    if mode == "eaa":
+        nodes = footprint.eaa_node_counts(xx, xy, yy, det, max_nodes=int(options.eaa_max_nodes),
+                                          gamma=options.eaa_gamma, point_area=options.eaa_point_area)
+    else:
+        nodes = torch.ones_like(opacity, dtype=torch.int64)
+    with torch.no_grad():
+        ext = options.k_sigma * torch.sqrt(torch.maximum(proj.cov2d[:, 0], proj.cov2d[:, 2]) + dilation)
+        radii = torch.where(proj.visible, ext + (0.5 if box_mode else 0.0), torch.zeros_like(ext))
+    return FootprintProjection(means2d=proj.means2d, depths=proj.depths, cov=torch.stack([xx, xy, yy, det], -1),
+                               opacities=opacity, node_counts=nodes.to(torch.int32), visible=proj.visible,
+                               radii=radii, n_visible=int(proj.visible.sum()))
+
+
+# ------------------------------------------------------------------------------------------------
+# Rasterization autograd
+# ------------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=8)
+def _gauss_legendre_f32(order: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Gauss-Legendre nodes and weights (float32, CPU), built once per order."""
+    return footprint.gauss_legendre(order, torch.float32, "cpu")
+
+
 class RasterizeProjected(torch.autograd.Function):
     """Per-pixel part of the renderer in C++: projected Gaussians -> (color, depth, alpha, stats).
 
@@ -287,29 +507,74 @@ def rasterize_projected(proj, width: int, height: int, settings, **_unused) -> C
                                                 gamma=settings.gamma, point_area=settings.point_area)
     else:
         node_counts = torch.ones_like(opacity, dtype=torch.int64)
-    gl_nodes, gl_weights = footprint.gauss_legendre(settings.exact_order if mode == "exact" else 1, torch.float32,
-                                                    proj.means2d.device)
+    gl_nodes, gl_weights = _gauss_legendre_f32(settings.exact_order if mode == "exact" else 1)
     cov = torch.stack([xx, xy, yy, det], -1)
     color, depth, alpha, stats = RasterizeProjected.apply(
         proj.means2d.contiguous(), cov.contiguous(), opacity.contiguous(), proj.depths.contiguous(),
         proj.colors.contiguous(), node_counts.to(torch.int32).contiguous(), MODE_IDS[mode], int(width), int(height),
-        float(settings.k_sigma), float(settings.eta), float(settings.tau), gl_nodes.contiguous(),
-        gl_weights.contiguous(), torch.get_num_threads())
+        float(settings.k_sigma), float(settings.eta), float(settings.tau), gl_nodes, gl_weights,
+        torch.get_num_threads())
     return CpuImage(color=color, depth=depth, alpha=alpha, lanes_evaluated=int(stats[0]), pairs=int(stats[1]))
 
 
-def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, *, mode: str, options):
-    """:func:`mipslam.render.rasterize` on the compiled backend (inputs already checked by it).
+# ------------------------------------------------------------------------------------------------
+# Entry point
+# ------------------------------------------------------------------------------------------------
+def _fused_projection_applies(means, K, options) -> bool:
+    """The fused projection treats K and the 3D filter's sampling rate as constants; when either needs a
+    gradient (or the rate is not a plain [N] tensor of the means' dtype) the torch projection is used."""
+    if K.requires_grad:
+        return False
+    rate = options.max_sampling_rate
+    return rate is None or (not rate.requires_grad and rate.dtype == means.dtype and rate.device == means.device
+                            and tuple(rate.shape) == (means.shape[0],))
 
-    Projection, footprint parameters, radii and the optional normalised depth are the torch backend's own
-    code (:func:`mipslam.render.rasterize_torch` with this module's per-pixel stage).
+
+def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, *, mode: str, options):
+    """:func:`mipslam.render.rasterize` on the compiled backend (shapes and dtypes already checked by it; the
+    camera's values are checked here, in C++).
+
+    Two C++ stages, each an autograd function with a hand-written backward: the fused projection
+    (:class:`ProjectFootprints`) and the tile rasterizer (:class:`RasterizeProjected`).
     """
+    from mipslam.render import RenderOutput
+
     reason = unsupported_reason(means, colors, mode, options)
     if reason is not None:
         raise BackendUnavailableError(f"rasterize: {reason}")
     load_extension()
-    from mipslam.render import rasterize_torch
+    if not _fused_projection_applies(means, K, options):
+        return rasterize_unfused(means, quats, scales, opacities, colors, viewmat, K, width, height, mode=mode,
+                                 options=options)
+    if options.pose_only:
+        means, quats, scales, opacities, colors = (t.detach() for t in (means, quats, scales, opacities, colors))
+    threads = torch.get_num_threads()
+    try:
+        means2d, depths, cov, opacity, node_counts, visible, radii, n_visible = ProjectFootprints.apply(
+            means, quats, scales, opacities, viewmat, colors, K, options.max_sampling_rate, width, height,
+            _params_for(mode, options), threads)
+    except ValueError as exc:  # the camera checks of projection.h (TORCH_CHECK_VALUE)
+        raise RenderError(str(exc).split("\n")[0]) from None
+    gl_nodes, gl_weights = _gauss_legendre_f32(options.exact_order if mode == "exact" else 1)
+    color, depth, alpha, _stats = RasterizeProjected.apply(
+        means2d, cov, opacity, depths, colors.contiguous(), node_counts, MODE_IDS[mode], width, height,
+        float(options.k_sigma), float(options.eaa_eta), float(options.eaa_tau), gl_nodes, gl_weights, threads)
+    depth_normalized = None
+    if options.normalized_depth:
+        depth_normalized = torch.where(alpha > 1e-6, depth / alpha.clamp_min(1e-6), torch.zeros_like(depth))
+    return RenderOutput(color=color, depth=depth, alpha=alpha, depth_normalized=depth_normalized, means2d=means2d,
+                        radii=radii, visible=visible, n_visible=n_visible, depths=depths, mode=mode,
+                        backend="cpu")
 
+
+def rasterize_unfused(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, *, mode: str,
+                      options):
+    """The cpu backend with the torch projection (autograd through ~100 tensor operations) in front of the
+    C++ rasterizer: the path before the fused projection, kept for gradients with respect to K or the 3D
+    filter's sampling rate, and as the benchmark's baseline."""
+    from mipslam.render import _check_camera_values, rasterize_torch
+
+    _check_camera_values(viewmat, K)
     out = rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width, height, mode, options,
                           rasterizer=rasterize_projected)
     return dataclasses.replace(out, backend="cpu")

@@ -17,9 +17,11 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <memory>
 #include <vector>
 
 #include "footprint_simd.h"
+#include "projection.h"
 #include "simd_math.h"
 
 #ifdef _OPENMP
@@ -371,7 +373,10 @@ static void backward_tile(const Scene& sc, int tile, const GradInputs& gin, floa
         const int32_t m = sc.isect_ids[j];
         const Gauss& g = sc.gauss[m];
         int ra, rb, b0, b1;
-        if (!tile_span(g, x0, y0, &ra, &rb, &b0, &b1)) continue;
+        if (!tile_span(g, x0, y0, &ra, &rb, &b0, &b1)) {
+            for (int q = 0; q < REC; ++q) records[(int64_t)j * REC + q] = 0.f;
+            continue;
+        }
         const vi slot = splati(j - begin);
         vf col[C];
         for (int c = 0; c < C; ++c) col[c] = splat(sc.colors[(int64_t)m * C + c]);
@@ -481,8 +486,12 @@ struct Inputs {
 
 // Depth-sorted drawn Gaussians and their colours. order[m] = input index of sorted Gaussian m.
 struct Sorted {
-    std::vector<Gauss> gauss;
-    std::vector<float> colors;
+    std::unique_ptr<Gauss[]> gauss;  // not zero-filled: every entry is written before it is read
+    std::unique_ptr<float[]> colors;
+    void allocate(int64_t count, int64_t channels) {
+        gauss.reset(new Gauss[(size_t)std::max<int64_t>(count, 1)]);
+        colors.reset(new float[(size_t)std::max<int64_t>(count * channels, 1)]);
+    }
 };
 
 static void setup_all(const Inputs& in, int mode, float k, int width, int height, int threads, Gauss* gs,
@@ -499,15 +508,42 @@ static void setup_all(const Inputs& in, int mode, float k, int width, int height
 // Gather the drawn Gaussians (and colours) into depth order: sorted[m] = all[order[m]].
 static void gather_sorted(const Inputs& in, const Gauss* all, const int32_t* order, int64_t count, int threads,
                           Sorted* out) {
-    out->gauss.resize(count);
-    out->colors.resize(count * in.channels);
-    Gauss* gs = out->gauss.data();
-    float* cs = out->colors.data();
+    out->allocate(count, in.channels);
+    Gauss* gs = out->gauss.get();
+    float* cs = out->colors.get();
 #pragma omp parallel for schedule(static) num_threads(threads)
     for (int64_t m = 0; m < count; ++m) {
         const int64_t i = order[m];
         gs[m] = all[i];
         for (int64_t c = 0; c < in.channels; ++c) cs[m * in.channels + c] = in.colors[i * in.channels + c];
+    }
+}
+
+// Stable LSD radix sort of (key, value) pairs by the 32-bit key, 8 bits per pass (passes in which every key
+// has the same digit are skipped). With the values in increasing order on input, ties stay in that order.
+static void radix_sort_pairs(std::vector<uint32_t>* keys, std::vector<int32_t>* values) {
+    const size_t n = keys->size();
+    if (n < 2) return;
+    std::vector<uint32_t> key_tmp(n);
+    std::vector<int32_t> value_tmp(n);
+    uint32_t *ka = keys->data(), *kb = key_tmp.data();
+    int32_t *va = values->data(), *vb = value_tmp.data();
+    for (int shift = 0; shift < 32; shift += 8) {
+        size_t count[257] = {};
+        for (size_t i = 0; i < n; ++i) ++count[((ka[i] >> shift) & 0xffu) + 1];
+        if (count[((ka[0] >> shift) & 0xffu) + 1] == n) continue;
+        for (int b = 0; b < 256; ++b) count[b + 1] += count[b];
+        for (size_t i = 0; i < n; ++i) {
+            const size_t d = count[(ka[i] >> shift) & 0xffu]++;
+            kb[d] = ka[i];
+            vb[d] = va[i];
+        }
+        std::swap(ka, kb);
+        std::swap(va, vb);
+    }
+    if (ka != keys->data()) {
+        std::copy(ka, ka + n, keys->data());
+        std::copy(va, va + n, values->data());
     }
 }
 
@@ -524,29 +560,33 @@ static Binning bin_gaussians(const Inputs& in, int mode, float k, int width, int
     const int64_t n = in.n;
     const int tiles_x = (width + TILE - 1) / TILE, tiles_y = (height + TILE - 1) / TILE;
     const int64_t num_tiles = (int64_t)tiles_x * tiles_y;
-    std::vector<Gauss> all(n);
+    std::unique_ptr<Gauss[]> all(new Gauss[(size_t)std::max<int64_t>(n, 1)]);  // written by setup_all
     std::vector<uint8_t> drawn(n, 0);
-    setup_all(in, mode, k, width, height, threads, all.data(), drawn.data());
-    // Depth order, ties in input order (the torch backend's stable argsort): one 64-bit key per drawn
-    // Gaussian, (depth as an order-preserving unsigned integer, index). Depths are finite here.
-    std::vector<uint64_t> keys;
+    setup_all(in, mode, k, width, height, threads, all.get(), drawn.data());
+    // Depth order, ties in input order (the torch backend's stable argsort): the depth as an
+    // order-preserving unsigned integer, radix-sorted stably with the indices in increasing order.
+    // Depths are finite here.
+    std::vector<uint32_t> keys;
+    std::vector<int32_t> index;
     keys.reserve(n);
+    index.reserve(n);
     for (int64_t i = 0; i < n; ++i) {
         if (!drawn[i]) continue;
         const float z = in.depth[i] == 0.f ? 0.f : in.depth[i];  // -0 sorts with +0
         uint32_t bits;
         std::memcpy(&bits, &z, sizeof(bits));
         bits = (bits & 0x80000000u) ? ~bits : (bits | 0x80000000u);
-        keys.push_back(((uint64_t)bits << 32) | (uint64_t)i);
+        keys.push_back(bits);
+        index.push_back((int32_t)i);
     }
-    std::sort(keys.begin(), keys.end());
+    radix_sort_pairs(&keys, &index);
     const int64_t count = (int64_t)keys.size();
     Binning out;
     out.order = at::empty({count}, at::kInt);
     int32_t* order = out.order.data_ptr<int32_t>();
-    for (int64_t m = 0; m < count; ++m) order[m] = (int32_t)(keys[m] & 0xffffffffu);
-    gather_sorted(in, all.data(), order, count, threads, sorted);
-    const Gauss* gs = sorted->gauss.data();
+    std::copy(index.begin(), index.end(), order);
+    gather_sorted(in, all.get(), order, count, threads, sorted);
+    const Gauss* gs = sorted->gauss.get();
 
     out.pair_offsets = at::empty({count + 1}, at::kInt);
     int32_t* poff = out.pair_offsets.data_ptr<int32_t>();
@@ -690,10 +730,11 @@ std::vector<at::Tensor> rasterize_forward(const at::Tensor& means2d, const at::T
     const Inputs in = check_inputs(means2d, cov, opacity, depth, colors, node_counts, mode, width, height, gl_nodes,
                                    gl_weights);
     const int64_t C = in.channels;
-    at::Tensor color = at::zeros({height, width, C}, at::kFloat);
-    at::Tensor depth_img = at::zeros({height, width}, at::kFloat);
-    at::Tensor alpha_img = at::zeros({height, width}, at::kFloat);
-    at::Tensor last = at::zeros({height, width}, at::kInt);
+    // every pixel is written by forward_tile
+    at::Tensor color = at::empty({height, width, C}, at::kFloat);
+    at::Tensor depth_img = at::empty({height, width}, at::kFloat);
+    at::Tensor alpha_img = at::empty({height, width}, at::kFloat);
+    at::Tensor last = at::empty({height, width}, at::kInt);
     at::Tensor stats = at::zeros({2}, at::kLong);
     Binning bins;
     {
@@ -701,8 +742,8 @@ std::vector<at::Tensor> rasterize_forward(const at::Tensor& means2d, const at::T
         Sorted sorted;
         bins = bin_gaussians(in, (int)mode, (float)k_sigma, (int)width, (int)height, (int)threads, &sorted);
         Scene sc{(int)width, (int)height, (int)((width + TILE - 1) / TILE), (int)((height + TILE - 1) / TILE),
-                 (int)C, make_settings((int)mode, k_sigma, eta, tau, gl_nodes, gl_weights), sorted.gauss.data(),
-                 sorted.colors.data(), bins.tile_offsets.data_ptr<int32_t>(), bins.isect_ids.data_ptr<int32_t>()};
+                 (int)C, make_settings((int)mode, k_sigma, eta, tau, gl_nodes, gl_weights), sorted.gauss.get(),
+                 sorted.colors.get(), bins.tile_offsets.data_ptr<int32_t>(), bins.isect_ids.data_ptr<int32_t>()};
         int64_t lanes = 0;
         MIPSLAM_DISPATCH_CHANNELS(C, lanes = run_forward<CH>(sc, (int)threads, color.data_ptr<float>(),
                                                            depth_img.data_ptr<float>(), alpha_img.data_ptr<float>(),
@@ -756,11 +797,10 @@ std::vector<at::Tensor> rasterize_backward(
         for (int64_t m = 0; m < count; ++m)
             TORCH_CHECK(ord[m] >= 0 && ord[m] < n, "mipslam cpu rasterizer: corrupt backward state (order)");
         Sorted sorted;  // identical to the forward's (same inputs, same arithmetic)
-        sorted.gauss.resize(count);
-        sorted.colors.resize(count * C);
+        sorted.allocate(count, C);
         {
-            Gauss* gs = sorted.gauss.data();
-            float* cs = sorted.colors.data();
+            Gauss* gs = sorted.gauss.get();
+            float* cs = sorted.colors.get();
 #pragma omp parallel for schedule(static) num_threads((int)threads)
             for (int64_t m = 0; m < count; ++m) {
                 const int64_t i = ord[m];
@@ -771,14 +811,15 @@ std::vector<at::Tensor> rasterize_backward(
             }
         }
         Scene sc{(int)width, (int)height, tiles_x, tiles_y, (int)C,
-                 make_settings((int)mode, k_sigma, eta, tau, gl_nodes, gl_weights), sorted.gauss.data(),
-                 sorted.colors.data(), tile_offsets.data_ptr<int32_t>(), isect_ids.data_ptr<int32_t>()};
+                 make_settings((int)mode, k_sigma, eta, tau, gl_nodes, gl_weights), sorted.gauss.get(),
+                 sorted.colors.get(), tile_offsets.data_ptr<int32_t>(), isect_ids.data_ptr<int32_t>()};
         GradInputs gin{grad_color.data_ptr<float>(), grad_depth.data_ptr<float>(), grad_alpha.data_ptr<float>(),
                        color.data_ptr<float>(), depth_img.data_ptr<float>(), alpha_img.data_ptr<float>(),
                        last.data_ptr<int32_t>()};
         const int64_t rec = 8 + C;
-        std::vector<float> records((size_t)(total * rec));
-        MIPSLAM_DISPATCH_CHANNELS(C, run_backward<CH>(sc, (int)threads, gin, records.data(), need_color_grad,
+        // every record is written by backward_tile (zeros for pairs it skips)
+        std::unique_ptr<float[]> records(new float[(size_t)std::max<int64_t>(total * rec, 1)]);
+        MIPSLAM_DISPATCH_CHANNELS(C, run_backward<CH>(sc, (int)threads, gin, records.get(), need_color_grad,
                                                       need_opacity_grad));
         // Deterministic reduction: each Gaussian sums its pairs in tile order (no atomics, and the
         // result does not depend on the number of threads or on the schedule).
@@ -789,7 +830,7 @@ std::vector<at::Tensor> rasterize_backward(
         float* go = g_opacity.data_ptr<float>();
         float* gd = g_depth.data_ptr<float>();
         float* gcol = g_colors.data_ptr<float>();
-        const float* rp = records.data();
+        const float* rp = records.get();
 #pragma omp parallel for schedule(static) num_threads((int)threads)
         for (int64_t m = 0; m < count; ++m) {
             float acc[8 + 4] = {};
@@ -854,6 +895,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.doc() = "mipslam CPU rasterizer (tile binning, SIMD footprints, compositing; forward and backward)";
     m.def("rasterize_forward", &mipslam_cpu::rasterize_forward);
     m.def("rasterize_backward", &mipslam_cpu::rasterize_backward);
+    m.def("project_forward", &mipslam_cpu::project_forward);
+    m.def("project_backward", &mipslam_cpu::project_backward);
     m.def("vector_math", &mipslam_cpu::vector_math);
     m.def("build_info", &mipslam_cpu::build_info);
 }
