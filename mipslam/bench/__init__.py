@@ -79,7 +79,7 @@ def run_bench(spec: BenchSpec, executor: Executor | None = None) -> BenchOutcome
     jobs = plan_jobs(spec, settings)
     executor = executor or LocalExecutor()
     threads = sorted({s.threads for s in settings})
-    machine = machine_info(threads[0] if len(threads) == 1 else threads)  # type: ignore[arg-type]
+    machine = machine_info(threads[0] if len(threads) == 1 else threads)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

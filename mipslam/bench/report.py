@@ -52,7 +52,7 @@ def git_commit(folder: Path = REPO_ROOT) -> dict[str, Any] | None:
     return {"commit": head.stdout.strip(), "uncommitted_changes": bool(status.stdout.strip())}
 
 
-def machine_info(threads: int) -> dict[str, Any]:
+def machine_info(threads: int | list[int]) -> dict[str, Any]:
     """The machine the bench ran on: CPU, cores, load, Python/torch versions, render backends, git commit."""
     import torch
 
