@@ -170,13 +170,19 @@ def curve_rows(probe: FrameProbe, rows: int) -> list[dict]:
 
 
 def git_commit() -> str:
+    """The checkout's commit (and whether tracked files differ from it); MIPSLAM_COMMIT overrides it, for a
+    copy of the tree outside git (e.g. ``git archive`` into a folder, so others' edits cannot change a long run)."""
+    if os.environ.get("MIPSLAM_COMMIT"):
+        return os.environ["MIPSLAM_COMMIT"]
     try:
         out = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
         dirty = subprocess.run(["git", "-C", str(REPO), "status", "--porcelain", "--untracked-files=no"],
                                capture_output=True, text=True).stdout.strip()
-        return out.stdout.strip() + (" (with uncommitted changes)" if dirty else "")
     except OSError:
         return "unknown"
+    if out.returncode != 0:
+        return "unknown (not a git checkout)"
+    return out.stdout.strip() + (" (with uncommitted changes)" if dirty else "")
 
 
 def main(argv: list[str] | None = None) -> int:
