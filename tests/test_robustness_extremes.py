@@ -151,6 +151,7 @@ class VariantRun:
     summary: RunSummary
     frames_json: dict
     checkpoint_tensors: dict
+    estimated_T_wc: np.ndarray  # [N, 4, 4]
     position_errors: np.ndarray  # [N] metres, no alignment
 
     @property
@@ -162,11 +163,11 @@ class VariantRun:
         return float(np.sqrt(np.mean(errors ** 2)))
 
 
-def run_variant(name: str, render: Renderer, root: Path) -> VariantRun:
+def run_variant(name: str, render: Renderer, root: Path, *extra_settings: str) -> VariantRun:
     frames, bad = build_variant(name, render)
     sequence = write_replica(root / f"seq_{name}", frames, render.intrinsics)
     config = load_config(REPO / "configs" / "synthetic.yaml",
-                         overrides=[f"dataset.path={sequence}", "dataset.kind=replica", *SETTINGS])
+                         overrides=[f"dataset.path={sequence}", "dataset.kind=replica", *SETTINGS, *extra_settings])
     run_dir = root / f"run_{name}"
     summary = run_slam(config, run_dir, evaluate=False)
     checkpoint = load_latest_checkpoint(run_dir / "checkpoints")
@@ -174,7 +175,7 @@ def run_variant(name: str, render: Renderer, root: Path) -> VariantRun:
     truth = np.stack([f.T_wc for f in frames])
     errors = np.linalg.norm(estimated[:, :3, 3] - truth[:, :3, 3], axis=1)
     return VariantRun(name, frames, bad, summary, json.loads((run_dir / "frames.json").read_text()),
-                      checkpoint.tensors, errors)
+                      checkpoint.tensors, estimated, errors)
 
 
 @pytest.fixture(scope="module")
@@ -226,10 +227,12 @@ def test_extreme_input_run_finishes_flagged_finite_capped_and_recovers(name, ren
     counts = [f["gaussians"] for f in run.frames_json["frames"]]
     assert max(counts) <= MAX_GAUSSIANS and run.summary.gaussians <= MAX_GAUSSIANS
     if name == "repeated":
-        # at rest: the repeats add no keyframe and (almost) no Gaussians, and the pose stays put
+        # at rest (frames 5-24 are one image): no keyframe is added, and the estimate settles: over the
+        # last 10 repeats it moves less than 1 cm (a fifth of a pixel's footprint at the wall)
         assert run.summary.keyframes == clean_run.summary.keyframes
-        at_rest = run.position_errors[5:25]
-        assert np.ptp(at_rest) < 0.05, at_rest
+        settled = run.estimated_T_wc[15:25, :3, 3]
+        spread = float(np.linalg.norm(settled - settled.mean(axis=0), axis=1).max())
+        assert spread < 0.01, (spread, np.round(run.position_errors[5:25] * 100, 1))
         good = range(len(run.frames))
         baseline = clean_run.ate(range(FRAMES))
     elif name == "zoom":  # another trajectory: held to the clean loop's ATE (same scene, camera and settings)
@@ -241,6 +244,16 @@ def test_extreme_input_run_finishes_flagged_finite_capped_and_recovers(name, ren
     ate = run.ate(good)
     assert ate <= ATE_RATIO * baseline, (f"{name}: ATE of the good frames {ate * 100:.2f} cm, clean run "
                                          f"{baseline * 100:.2f} cm; errors (cm) {np.round(run.position_errors * 100, 1)}")
+
+
+def test_gaussian_cap_binds_from_the_first_keyframe(renderer, clean_run, tmp_path):
+    """A cap below what the first keyframe alone would add (~300 Gaussians at 40x30, stride 2)."""
+    cap = 120
+    run = run_variant("zoom", renderer, tmp_path, f"mapping.max_gaussians={cap}")
+    counts = [f["gaussians"] for f in run.frames_json["frames"]]
+    assert max(counts) == cap and run.summary.gaussians <= cap, counts
+    assert run.summary.frames == len(run.frames)
+    assert_finite_everywhere(run)
 
 
 @pytest.mark.xfail(strict=True, reason="tracking neither flags nor relocalises after a 30 cm jump: it accepts a pose "
