@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 import types
 import typing
 from dataclasses import dataclass, field
@@ -116,6 +117,9 @@ class TrackingConfig:
     iterations: int = 40
     lr_translation: float = 2e-3
     lr_rotation: float = 4e-3
+    # Adam's steps stay near lr until it stops, which leaves the pose jittering by about lr; decaying the
+    # rate geometrically to lr * lr_final_ratio over each level's iterations lets it settle.
+    lr_final_ratio: float = 1.0
     convergence_threshold: float = 1e-5  # stop when the pose update (se3 norm) is below this
     alpha_color: float = 0.5  # weight of the photometric term against depth
     coarse_to_fine: tuple[float, ...] = ()  # e.g. (0.5,) tracks at half resolution first
@@ -129,6 +133,7 @@ class TrackingConfig:
         _check(self.iterations >= 1, "tracking.iterations", "must be >= 1")
         _check(0 <= self.alpha_color <= 1, "tracking.alpha_color", "must be in [0, 1]")
         _check(self.lr_translation > 0 and self.lr_rotation > 0, "tracking.lr_*", "learning rates must be positive")
+        _check(0 < self.lr_final_ratio <= 1, "tracking.lr_final_ratio", "must be in (0, 1] (1 = constant rate)")
         _check(all(0 < s <= 1 for s in self.coarse_to_fine), "tracking.coarse_to_fine", "scales must be in (0, 1]")
         _check(0 <= self.min_valid_fraction <= 1, "tracking.min_valid_fraction", "must be in [0, 1]")
         _check(0 <= self.gradient_mask_percentile < 100, "tracking.gradient_mask_percentile", "must be in [0, 100)")
@@ -292,6 +297,14 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
     if tp is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             return float(value)
+        if isinstance(value, str):
+            # YAML 1.1 reads "5e-4" (no dot in the mantissa) as a string; users mean the number.
+            try:
+                number = float(value)
+            except ValueError:
+                number = None
+            if number is not None and math.isfinite(number):
+                return number
         raise ConfigError(f"config key '{key}': expected a number, got {value!r}")
     if tp is str:
         if isinstance(value, str):

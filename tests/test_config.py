@@ -67,6 +67,9 @@ def test_unknown_key_in_a_file_is_rejected(tmp_path):
         ("dataset.width=0", "dataset.width"),
         ("run.evaluate_at_end=maybe", "expected true or false"),
         ("eval.scales=[0.5,-1]", "eval.scales"),
+        ("tracking.lr_translation=fast", "expected a number"),
+        ("tracking.lr_translation=nan", "expected a number"),
+        ("tracking.lr_final_ratio=0", "tracking.lr_final_ratio"),
     ],
 )
 def test_wrong_types_and_out_of_range_values(override, message):
@@ -79,6 +82,12 @@ def test_override_values_are_typed():
     assert config.eval.scales == (0.25, 0.5, 1.0)
     assert config.dataset.fx == 585.0 and isinstance(config.dataset.fx, float)
     assert config.tracking.use_exposure is True
+
+
+def test_exponent_without_a_dot_is_a_number():
+    # YAML 1.1 reads 5e-4 as a string; a float field takes it as the number the user meant.
+    config = load_config(overrides=["tracking.lr_translation=5e-4", "mapping.lr_means=1E-3"])
+    assert config.tracking.lr_translation == 5e-4 and config.mapping.lr_means == 1e-3
 
 
 def test_malformed_override():
