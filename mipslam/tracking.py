@@ -132,8 +132,13 @@ class Tracker:
         best_loss, best = math.inf, (torch.zeros(6, dtype=dtype, device=device), None)
         levels = self._levels(frame)
         full = levels[-1]  # scale 1 is always last and gets at least half of the iterations
+        base_lrs = [group["lr"] for group in optimizer.param_groups]
         for level in levels:
-            for _ in range(level.iterations):
+            # Geometric decay within each level: lr_i = lr * ratio^(i / (n - 1)).
+            decay = cfg.lr_final_ratio ** (1.0 / max(1, level.iterations - 1))
+            for i in range(level.iterations):
+                for group, base in zip(optimizer.param_groups, base_lrs):
+                    group["lr"] = base * decay ** i
                 xi = torch.cat([rho, phi])
                 T_cw = (se3_exp(xi.to(torch.float64)) @ T_cw_init).to(dtype)
                 loss = self._loss(gaussians, T_cw, level, exposure)
