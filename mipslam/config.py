@@ -208,8 +208,12 @@ class LoopConfig:
     low_frequency_correction: bool = True
     num_eigenvectors: int = 16
     full_iterations: int = 3
+    # Mapping steps over the loop's keyframes right after the map moved with its anchors: Gaussians
+    # that mapping had pulled towards drifted views do not move back with any anchor; this re-fits them.
+    refine_iterations: int = 20
 
     def __post_init__(self):
+        _check(self.refine_iterations >= 0, "loop.refine_iterations", "must be >= 0")
         _check(self.min_keyframe_gap >= 1, "loop.min_keyframe_gap", "must be >= 1")
         _check(self.num_eigenvectors >= 1, "loop.num_eigenvectors", "must be >= 1")
         _check(self.full_iterations >= 0, "loop.full_iterations", "must be >= 0")

@@ -259,20 +259,41 @@ def correct_map(stages: Stages, state: SLAMState, step: LoopStep) -> dict:
 
     The check renders the map at the loop's keyframes (the query and its loop partners) and
     compares with their images (PSNR, dB): before the correction at the old poses, then at the
-    new poses with the map not yet moved (what correcting only the poses would give), and after
-    the Gaussians moved with their anchor keyframes.
+    new poses with the map not yet moved (what correcting only the poses would give), after the
+    Gaussians moved with their anchor keyframes, and after ``loop.refine_iterations`` mapping steps
+    over those keyframes at their corrected (then fixed) poses (:func:`refine_after_correction`).
     """
     check = sorted({step.optimisation.query_keyframe, *(i for i, _ in step.optimisation.new_loop_edges)})
     start = time.perf_counter()
     before = [_keyframe_psnr(stages, state, k, state.keyframe_record(k).T_wc) for k in check]
     poses_only = [_keyframe_psnr(stages, state, k, step.corrected_T_wc[k]) for k in check]
     moved = state.correct_keyframe_poses(step.corrected_T_wc)
+    moved_only = [_keyframe_psnr(stages, state, k, state.keyframe_record(k).T_wc) for k in check]
+    refine_iterations = refine_after_correction(stages, state, check)
     after = [_keyframe_psnr(stages, state, k, state.keyframe_record(k).T_wc) for k in check]
     log.info("loop correction at keyframe %d: moved %d Gaussians; map PSNR at keyframes %s %.2f -> %.2f dB "
-             "(%.2f dB with the poses alone corrected)", step.optimisation.query_keyframe, moved, check,
-             sum(before) / len(before), sum(after) / len(after), sum(poses_only) / len(poses_only))
+             "(%.2f dB with the poses alone corrected, %.2f dB with the map moved before refinement)",
+             step.optimisation.query_keyframe, moved, check, sum(before) / len(before), sum(after) / len(after),
+             sum(poses_only) / len(poses_only), sum(moved_only) / len(moved_only))
     return {"gaussians_moved": moved, "psnr_keyframes": check, "psnr_before_db": before,
-            "psnr_poses_only_db": poses_only, "psnr_after_db": after, "map_correction_s": time.perf_counter() - start}
+            "psnr_poses_only_db": poses_only, "psnr_moved_db": moved_only, "refine_iterations": refine_iterations,
+            "psnr_after_db": after, "map_correction_s": time.perf_counter() - start}
+
+
+def refine_after_correction(stages: Stages, state: SLAMState, keyframe_ids: list[int]) -> int:
+    """Mapping steps over the loop's keyframes at their corrected poses (held fixed); returns the steps.
+
+    Moving Gaussians with their anchors cannot undo what mapping did before the correction: old
+    Gaussians re-fitted from drifted views sit where those views put them. ``loop.refine_iterations``
+    steps of the mapping loss over the loop's keyframes (no densification, no pose updates, so the
+    pose-graph solution stands) reconcile the map with the corrected poses.
+    """
+    iterations = stages.config.loop.refine_iterations
+    if iterations == 0 or len(state.gaussian_map) == 0:
+        return 0
+    views = [replace(_mapping_view(stages, state, k), optimize_pose=False) for k in keyframe_ids]
+    stages.mapper.optimize(state.gaussian_map, state.optimizer, views, iterations, state.generator)
+    return iterations
 
 
 def _keyframe_view(stages: Stages, state: SLAMState, keyframe_id: int) -> KeyframeView:
