@@ -84,6 +84,7 @@ class FrameProbe:
     """The ``after_tracking`` hook: samples time, RSS, Gaussians and checkpoint files once per frame."""
 
     checkpoints: Path
+    progress: Path | None = None  # one JSON line per frame, flushed at once (a run cut short keeps its curve)
     frame: list[int] = field(default_factory=list)
     seconds: list[float] = field(default_factory=list)  # since the previous probe
     rss_mib: list[float] = field(default_factory=list)
@@ -111,6 +112,11 @@ class FrameProbe:
         self.rss_mib.append(rss_mib())
         self.gaussians.append(len(state.gaussian_map))
         self.checkpoint_files.append(len(list_checkpoints(self.checkpoints)))
+        if self.progress is not None:
+            with open(self.progress, "a", encoding="utf-8") as out:
+                out.write(json.dumps({"frame": self.frame[-1], "period_before_s": None if self._last is None else
+                                      self.seconds[-1], "rss_mib": self.rss_mib[-1], "gaussians": self.gaussians[-1],
+                                      "checkpoint_files": self.checkpoint_files[-1]}) + "\n")
         return result
 
 
@@ -196,6 +202,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     parser.add_argument("--rows", type=int, default=10, help="rows of the printed curves")
     parser.add_argument("--json", type=Path, help="write the per-frame curves, checks and settings here")
+    parser.add_argument("--progress", type=Path, help="append one JSON line per frame here while the run goes on")
     parser.add_argument("--keep", type=Path, help="work in this folder and keep it (default: a temporary folder)")
     args = parser.parse_args(argv)
     laps = args.laps or default_laps(args.frames)
@@ -210,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
         shutil.rmtree(run_dir, ignore_errors=True)
         overrides = [f"dataset.path={sequence}", f"run.threads={args.threads}", *args.overrides]
         config = load_config(REPO / "configs" / "synthetic.yaml", preset=args.preset, overrides=overrides)
-        probe = FrameProbe(run_dir / "checkpoints")
+        probe = FrameProbe(run_dir / "checkpoints", args.progress)
         rss_start = rss_mib()
         started = time.perf_counter()
         summary = run_slam(config, run_dir, evaluate=False, hooks=PipelineHooks(after_tracking=probe))
