@@ -114,8 +114,9 @@ class FrameProbe:
         self.checkpoint_files.append(len(list_checkpoints(self.checkpoints)))
         if self.progress is not None:
             with open(self.progress, "a", encoding="utf-8") as out:
-                out.write(json.dumps({"frame": self.frame[-1], "period_before_s": None if self._last is None else
-                                      self.seconds[-1], "rss_mib": self.rss_mib[-1], "gaussians": self.gaussians[-1],
+                period = self.seconds[-1]
+                out.write(json.dumps({"frame": self.frame[-1], "period_before_s": None if period != period else period,
+                                      "rss_mib": self.rss_mib[-1], "gaussians": self.gaussians[-1],
                                       "checkpoint_files": self.checkpoint_files[-1]}) + "\n")
         return result
 
