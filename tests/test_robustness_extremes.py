@@ -268,3 +268,33 @@ def test_sudden_30cm_jump_is_flagged_or_tracked_and_tracking_recovers(renderer, 
     assert 6 in run.flagged or run.position_errors[6] < 0.10, run.position_errors
     good = [i for i in range(FRAMES) if i != 6]
     assert run.ate(good) <= ATE_RATIO * clean_run.ate(good), np.round(run.position_errors * 100, 1)
+
+
+# ----------------------------------------------------------------------------- the table of docs/robustness.md
+
+def print_table() -> None:
+    """Run every variant once and print the table of docs/robustness.md (``python tests/test_robustness_extremes.py``)."""
+    import tempfile
+    import time
+
+    render = Renderer()
+    root = Path(tempfile.mkdtemp(prefix="mipslam_extremes_"))
+    clean = run_variant("clean", render, root)
+    print("| variant | frames | flagged | keyframes | max Gaussians | ATE good (cm) | clean (cm) | ratio | "
+          "worst broken-frame error (cm) | s |")
+    for name in ["clean", "black", "saturated", "no_depth", "textureless", "holes_and_noise", "repeated", "zoom", "jump"]:
+        started = time.perf_counter()
+        run = clean if name == "clean" else run_variant(name, render, root)
+        if name in ("repeated", "zoom"):
+            good, baseline = range(len(run.frames)), clean.ate(range(FRAMES))
+        else:
+            good = [i for i in range(FRAMES) if i not in run.bad]
+            baseline = clean.ate(good)
+        worst = max((float(run.position_errors[i]) * 100 for i in run.bad), default=float("nan"))
+        print(f"| {name} | {len(run.frames)} | {run.flagged} | {run.summary.keyframes} | "
+              f"{max(f['gaussians'] for f in run.frames_json['frames'])} | {run.ate(good) * 100:.2f} | "
+              f"{baseline * 100:.2f} | {run.ate(good) / baseline:.2f} | {worst:.1f} | {time.perf_counter() - started:.1f} |")
+
+
+if __name__ == "__main__":
+    print_table()
