@@ -60,3 +60,30 @@ def test_ctrl_c_inside_mapping_saves_a_checkpoint_that_resumes_to_the_same_run(s
     print(kill_resume.format_table(setup, [result]))
     assert not result.finished_before_kill
     assert result.ok, result
+
+
+@pytest.mark.slow
+def test_corrupt_newest_checkpoint_falls_back_and_the_run_still_ends_identical(setup, tmp_path, caplog):
+    """Checkpoints after frames 2, 4 and 5; the newest is truncated (a power cut on a file system that
+    lies about fsync): --resume warns, continues from frame 4's and ends as the uninterrupted run."""
+    import logging
+
+    from mipslam.checkpoint import list_checkpoints
+    from mipslam.config import load_config
+    from mipslam.pipeline import run_slam
+
+    run_dir = tmp_path / "run"
+    overrides = [f"dataset.path={setup.sequence}", *setup.settings, "run.keep_checkpoints=3"]
+    run_slam(load_config(setup.config, overrides=[*overrides, "dataset.max_frames=5"]), run_dir, evaluate=False)
+    files = list_checkpoints(run_dir / "checkpoints")
+    assert len(files) == 3
+    newest = files[-1]
+    newest.write_bytes(newest.read_bytes()[: newest.stat().st_size // 2])
+    with caplog.at_level(logging.WARNING, logger="mipslam"):
+        run_slam(load_config(setup.config, overrides=overrides), run_dir, resume=True, evaluate=False)
+    messages = [r.getMessage() for r in caplog.records]
+    assert any(newest.name in m and ("checksum" in m or "truncated" in m) for m in messages), messages
+    assert any("resuming from older checkpoint" in m and files[-2].name in m for m in messages), messages
+    diff = kill_resume.compare_runs(setup.reference, run_dir)
+    assert diff["same"], diff
+    assert diff["pose_diff"] == 0.0 and diff["map_diff"] == 0.0
