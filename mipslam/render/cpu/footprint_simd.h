@@ -203,7 +203,7 @@ struct EaaPixel {
     // outer axis = y (row-constant outer quantities): A_j = (x - ridge_j + 1/2) / (s sqrt 2) per lane and
     // the same at x - 1 (Ap_j, shared with the left neighbour; lane 0 from a scalar), em = exp(-A^2)
     vf A[MAX_ROWS], Ap[MAX_ROWS], emp[MAX_ROWS];
-    float phi_s[MAX_ROWS], dy_s[MAX_ROWS], u_s[MAX_ROWS];
+    float phi_s[MAX_ROWS], dy_s[MAX_ROWS], u_s[MAX_ROWS], ridge_s[MAX_ROWS];
 };
 
 // State of the row-constant EAA path for at most MR node rows (the column blocks of the transposed
@@ -214,7 +214,7 @@ struct EaaLineState {
     vf pi, sw, swr, avg, a_over_o, a;
     vi inside;
     vf R[MR], e[MR], eA[MR], A[MR], Ap[MR], emp[MR];
-    float phi_s[MR], dy_s[MR], u_s[MR];
+    float phi_s[MR], dy_s[MR], u_s[MR], ridge_s[MR];
 };
 constexpr int LINE_ROWS = 8;  // node cap of the transposed (outer axis x) path
 
@@ -276,22 +276,18 @@ static inline __attribute__((always_inline)) Band outer_band_row(const Gauss& g,
 // EAA when the outer axis is y: everything that depends on the outer coordinate only (band, outer mass,
 // row positions t_j, marginal phi_j, ridge_j) is one scalar per image row, and the inner integrals of
 // neighbouring pixels share their common edge: R_j(x) = (erf(A_j(x)) - erf(A_j(x - 1))) / 2, so a row
-// segment of 8 pixels costs one vector erf per node row (plus one scalar for the left edge).
+// segment of 8 pixels costs one vector erf per node row (plus one vector erf for the left edges of all
+// node rows). The row part (eaa_outer_y_row) is computed once per image row and shared by the row's
+// segments in a tile (eaa_outer_y_segment); eaa_eval_outer_y does both.
 // px: the 8 inner coordinates (consecutive pixels), py: the outer coordinate. With the outer axis x the
 // same function evaluates a column segment: px = 8 consecutive y, py = x (see forward_tile).
 template <typename State>
-static inline __attribute__((always_inline)) vf eaa_eval_outer_y(const Gauss& g, const Settings& S, vf px,
-                                                                 float py, State* st) {
-    st->pi = px;
+static inline __attribute__((always_inline)) void eaa_outer_y_row(const Gauss& g, const Settings& S, float py,
+                                                                  State* st) {
     st->band = outer_band_row(g, S.k_sigma, py);
     const Band& b = st->band;
     const int n = g.nodes;
     const float lo = b.lo[0], width = b.hi[0] - b.lo[0];
-    const float cis = g.inv_s * INV_SQRT2;
-    const float x_left = px[0] - 1.f;
-    // Row constants of all node rows, 8 rows per vector: dy_j, u_j, phi_j, ridge_j and erf / exp(-A^2) at
-    // the left edge of the segment.
-    alignas(32) float ridge_s[MAX_ROWS], e_left[MAX_ROWS], em_left[MAX_ROWS];
     const vf lane = vf{0.f, 1.f, 2.f, 3.f, 4.f, 5.f, 6.f, 7.f};
     for (int j0 = 0; j0 < n; j0 += LANES) {
         const vf f = (splat((float)j0 + 0.5f) + lane) / splat((float)n);
@@ -299,20 +295,38 @@ static inline __attribute__((always_inline)) vf eaa_eval_outer_y(const Gauss& g,
         const vf u = dy * splat(g.inv_sigma_o);
         const vf phi = vexp(splat(-0.5f) * u * u);
         const vf ridge = splat(g.mu_i) + splat(g.slope) * dy;
-        vf em;
-        const vf E = verf((splat(x_left + 0.5f) - ridge) * splat(cis), &em);
         for (int l = 0; l < LANES && j0 + l < n; ++l) {
             st->dy_s[j0 + l] = dy[l];
             st->u_s[j0 + l] = u[l];
             st->phi_s[j0 + l] = phi[l];
-            ridge_s[j0 + l] = ridge[l];
+            st->ridge_s[j0 + l] = ridge[l];
+        }
+    }
+}
+
+template <typename State>
+static inline __attribute__((always_inline)) vf eaa_outer_y_segment(const Gauss& g, const Settings& S, vf px,
+                                                                    State* st) {
+    st->pi = px;
+    const Band& b = st->band;
+    const int n = g.nodes;
+    const float cis = g.inv_s * INV_SQRT2;
+    const float x_left = px[0] - 1.f;
+    // erf / exp(-A^2) at the left edge of the segment, 8 node rows per vector
+    alignas(32) float e_left[MAX_ROWS], em_left[MAX_ROWS];
+    for (int j0 = 0; j0 < n; j0 += LANES) {
+        vf ridge = splat(0.f);
+        for (int l = 0; l < LANES && j0 + l < n; ++l) ridge[l] = st->ridge_s[j0 + l];
+        vf em;
+        const vf E = verf((splat(x_left + 0.5f) - ridge) * splat(cis), &em);
+        for (int l = 0; l < LANES && j0 + l < n; ++l) {
             e_left[j0 + l] = E[l];
             em_left[j0 + l] = em[l];
         }
     }
     vf sw = splat(0.f), swr = splat(0.f);
     for (int j = 0; j < n; ++j) {
-        const float ridge = ridge_s[j], phi = st->phi_s[j];
+        const float ridge = st->ridge_s[j], phi = st->phi_s[j];
         vf em;
         const vf A = (px + splat(0.5f - ridge)) * splat(cis);
         const vf E = verf(A, &em);
@@ -339,6 +353,13 @@ static inline __attribute__((always_inline)) vf eaa_eval_outer_y(const Gauss& g,
     st->a_over_o = keep(st->inside, b.mass * splat(SQRT_2PI * g.s) * st->avg);
     st->a = keep(st->inside, splat(g.opacity) * b.mass * splat(SQRT_2PI * g.s) * st->avg);
     return st->a;
+}
+
+template <typename State>
+static inline __attribute__((always_inline)) vf eaa_eval_outer_y(const Gauss& g, const Settings& S, vf px,
+                                                                 float py, State* st) {
+    eaa_outer_y_row(g, S, py, st);
+    return eaa_outer_y_segment(g, S, px, st);
 }
 
 template <bool GRAD_OPACITY, typename State>

@@ -156,21 +156,14 @@ static inline __attribute__((always_inline)) bool uses_columns(const Gauss& g) {
     return MODE == MODE_EAA && g.nodes >= 2 && g.nodes <= LINE_ROWS && !g.outer_y;
 }
 
-// Rows [*ra, *rb] and blocks [*b0, *b1] of the tile at (x0, y0) that cover the Gaussian's pixel box.
-// The row count is made even (rows are processed in pairs, which halves the loop overhead and gives the
-// CPU two independent pixel vectors per iteration); the extra row lies outside the box, where every
-// footprint is below 1/255 or cut, so evaluating it changes nothing.
+// Rows [*ra, *rb] and blocks [*b0, *b1] (inclusive) of the tile at (x0, y0) that cover the Gaussian's
+// pixel box. The tile loops take the rows in pairs (two independent pixel vectors per iteration) and an
+// odd last row alone.
 static inline __attribute__((always_inline)) bool tile_span(const Gauss& g, int x0, int y0, int* ra, int* rb,
                                                             int* b0, int* b1) {
-    int r0 = std::max(g.py0 - y0, 0), r1 = std::min(g.py1 - y0, TILE - 1);
+    const int r0 = std::max(g.py0 - y0, 0), r1 = std::min(g.py1 - y0, TILE - 1);
     const int c0 = std::max(g.px0 - x0, 0), c1 = std::min(g.px1 - x0, TILE - 1);
     if (r0 > r1 || c0 > c1) return false;
-    if (((r1 - r0) & 1) == 0) {
-        if (r1 < TILE - 1)
-            ++r1;
-        else
-            --r0;
-    }
     *ra = r0;
     *rb = r1;
     *b0 = c0 / LANES;
@@ -178,12 +171,22 @@ static inline __attribute__((always_inline)) bool tile_span(const Gauss& g, int 
     return true;
 }
 
+// Footprint of one 8-pixel row segment. `row_ready`: the EAA state already holds this image row's
+// constants (set by the first segment of the row the Gaussian evaluates in this tile; the others reuse
+// them: EAA with outer axis y).
 template <int MODE>
 static inline __attribute__((always_inline)) vf eval_footprint(const Gauss& g, const Settings& S, float k2, vf px,
                                                                float py, CentrePixel* cp, EaaPixel* ep,
-                                                               ExactPixel* xp) {
+                                                               ExactPixel* xp, bool* row_ready) {
     if (uses_centre<MODE>(g)) return centre_eval(g, k2, px, py, cp);
-    if (MODE == MODE_EAA) return eaa_eval(g, S, px, py, ep);
+    if (MODE == MODE_EAA) {
+        if (!g.outer_y) return eaa_eval(g, S, px, py, ep);
+        if (!*row_ready) {
+            eaa_outer_y_row(g, S, py, ep);
+            *row_ready = true;
+        }
+        return eaa_outer_y_segment(g, S, px, ep);
+    }
     return exact_eval(g, S, px, py, xp);
 }
 
@@ -255,15 +258,26 @@ static int64_t forward_tile(const Scene& sc, int tile, float* out_color, float* 
                 }
             }
         } else {
-            for (int r = ra; r < rb; r += 2) {
+            int r = ra;
+            for (; r < rb; r += 2) {
                 const float py0 = (float)(y0 + r), py1 = py0 + 1.f;
+                bool ready0 = false, ready1 = false;
                 for (int b = b0; b <= b1; ++b) {
                     const int v0 = r * BLOCKS_PER_ROW + b;
                     const vf px = splat((float)(x0 + b * LANES)) + lane;
-                    const vf a0 = eval_footprint<MODE>(g, S, k2, px, py0, &cp0, &ep0, &xp0);
-                    const vf a1 = eval_footprint<MODE>(g, S, k2, px, py1, &cp1, &ep1, &xp1);
+                    const vf a0 = eval_footprint<MODE>(g, S, k2, px, py0, &cp0, &ep0, &xp0, &ready0);
+                    const vf a1 = eval_footprint<MODE>(g, S, k2, px, py1, &cp1, &ep1, &xp1, &ready1);
                     composite(v0, a0);
                     composite(v0 + BLOCKS_PER_ROW, a1);
+                }
+            }
+            if (r == rb) {  // odd last row
+                const float py0 = (float)(y0 + r);
+                bool ready0 = false;
+                for (int b = b0; b <= b1; ++b) {
+                    const vf px = splat((float)(x0 + b * LANES)) + lane;
+                    composite(r * BLOCKS_PER_ROW + b, eval_footprint<MODE>(g, S, k2, px, py0, &cp0, &ep0, &xp0,
+                                                                           &ready0));
                 }
             }
             lanes += (int64_t)(rb - ra + 1) * (b1 - b0 + 1) * LANES;
@@ -404,11 +418,11 @@ static void backward_tile(const Scene& sc, int tile, const GradInputs& gin, floa
             acc_d += w * gdep[v];
             return keep(valid & (a <= splat(ALPHA_MAX)), dal);
         };
-        auto process = [&](int v, vf px, float py, CentrePixel* cp, EaaPixel* ep, ExactPixel* xp)
+        auto process = [&](int v, vf px, float py, CentrePixel* cp, EaaPixel* ep, ExactPixel* xp, bool* ready)
                            __attribute__((always_inline)) {
             const vi listed = slot < last[v];
             if (!any_lane(listed)) return;
-            const vf a = eval_footprint<MODE>(g, S, k2, px, py, cp, ep, xp);
+            const vf a = eval_footprint<MODE>(g, S, k2, px, py, cp, ep, xp, ready);
             const vf ga = composite_grad(v, listed, a);
             if (!any_lane(ga != splat(0.f))) return;
             grad_footprint<MODE, GO>(g, S, py, *cp, *ep, *xp, ga, &acc);
@@ -443,14 +457,22 @@ static void backward_tile(const Scene& sc, int tile, const GradInputs& gin, floa
                 }
             }
         } else {
-            for (int r = ra; r < rb; r += 2) {
+            int r = ra;
+            for (; r < rb; r += 2) {
                 const float py0 = (float)(y0 + r), py1 = py0 + 1.f;
+                bool ready0 = false, ready1 = false;
                 for (int b = b0; b <= b1; ++b) {
                     const int v0 = r * BLOCKS_PER_ROW + b;
                     const vf px = splat((float)(x0 + b * LANES)) + lane;
-                    process(v0, px, py0, &cp0, &ep0, &xp0);
-                    process(v0 + BLOCKS_PER_ROW, px, py1, &cp1, &ep1, &xp1);
+                    process(v0, px, py0, &cp0, &ep0, &xp0, &ready0);
+                    process(v0 + BLOCKS_PER_ROW, px, py1, &cp1, &ep1, &xp1, &ready1);
                 }
+            }
+            if (r == rb) {  // odd last row
+                bool ready0 = false;
+                for (int b = b0; b <= b1; ++b)
+                    process(r * BLOCKS_PER_ROW + b, splat((float)(x0 + b * LANES)) + lane, (float)(y0 + r), &cp0,
+                            &ep0, &xp0, &ready0);
             }
         }
         float sums[6] = {hsum(acc.g0), hsum(acc.g1), hsum(acc.g2), hsum(acc.g3), hsum(acc.g4), hsum(acc.go)};
