@@ -7,8 +7,8 @@ reference run, then per trial:
 
 1. start ``mipslam run CONFIG --out RUN ...`` as a child process;
 2. SIGKILL it at a seeded random moment. Trials cycle through four strategies so that kills land
-   in every part of the run: ``time`` (a uniform delay over 80 % of the reference run's duration
-   after its imports), ``tracking``, ``mapping`` and ``checkpoint`` (wait until the child has
+   in every part of the run: ``time`` (once a random frame has started, a uniform delay of up to
+   one frame's average time), ``tracking``, ``mapping`` and ``checkpoint`` (wait until the child has
    entered that phase for the n-th time, n drawn at random, then kill at once). ``--ctrl-c N`` adds
    N trials that send SIGINT (Ctrl-C) instead, during ``mapping``, ``tracking`` or ``checkpoint``:
    mipslam must exit with code 130 after saving a checkpoint that resumes to the same result;
@@ -64,6 +64,10 @@ def _child_main(marker: Path, argv: list[str]) -> int:
     import mipslam.outputs
     import mipslam.pipeline as pipeline
     from mipslam.cli import main
+
+    # A process started in the background by a non-interactive shell inherits an ignored SIGINT; a user's
+    # Ctrl-C is not ignored, so give the run Python's usual KeyboardInterrupt handler.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
     fd = os.open(marker, os.O_RDWR | os.O_CREAT, 0o644)
     counts: dict[str, int] = {}
@@ -286,17 +290,19 @@ def run_trial(setup: Setup, workdir: Path, trial: int, strategy: str, rng: rando
     first_and_last = {"tracking": (1, max(1, setup.frames - 1)), "mapping": (min(2, setup.keyframes), setup.keyframes),
                       "checkpoint": (1, max(1, setup.frames // 2)), "time": (0, 0)}[phase_wanted]
     target_count = rng.randint(*first_and_last) if occurrence is None else occurrence
-    delay = rng.uniform(0.0, 0.8 * setup.run_seconds) if phase_wanted == "time" else 0.0
+    # "time": a random frame, then a random moment within about one frame's time (robust to the machine's load)
+    target_frame = rng.randint(0, setup.frames - 1) if phase_wanted == "time" else 0
+    delay = rng.uniform(0.0, setup.run_seconds / setup.frames) if phase_wanted == "time" else 0.0
     started = time.perf_counter()
     imported = None
     child = subprocess.Popen(child_command(marker, mipslam_argv(setup, out=run_dir)), env=env,
                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         while child.poll() is None and time.perf_counter() - started < timeout_s:
-            phase, count, _ = read_marker(marker)
+            phase, count, frame_now = read_marker(marker)
             if phase_wanted == "time":
-                if imported is None and phase != "not_started":
-                    imported = time.perf_counter()
+                if imported is None and phase != "not_started" and frame_now >= target_frame:
+                    imported = time.perf_counter()  # the target frame has started
                 if imported is not None and time.perf_counter() - imported >= delay:
                     break
             elif phase == phase_wanted and count >= target_count:
