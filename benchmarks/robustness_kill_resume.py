@@ -309,6 +309,7 @@ def run_trial(setup: Setup, workdir: Path, trial: int, strategy: str, rng: rando
                 break
             time.sleep(poll_s)
         finished = child.poll() is not None
+        at_signal = read_marker(marker)
         if not finished:
             child.send_signal(interrupt)
         child.wait(timeout=timeout_s)
@@ -318,7 +319,8 @@ def run_trial(setup: Setup, workdir: Path, trial: int, strategy: str, rng: rando
             child.kill()
             child.wait()
     kill_after = time.perf_counter() - started
-    phase, _, frame = read_marker(marker)
+    # SIGKILL: where the child died; Ctrl-C: where it was when the signal was sent (it then exits on its own)
+    phase, _, frame = read_marker(marker) if interrupt == signal.SIGKILL else at_signal
     checkpoints, resumed_from = _checkpoint_frames(run_dir)
     note = ""
     if interrupt == signal.SIGINT and not finished and interrupted_code != 130:
