@@ -101,7 +101,11 @@ class Checkpoint:
 # ----------------------------------------------------------------------------- encoding
 
 
-def _tensor_bytes(name: str, tensor: torch.Tensor) -> tuple[dict[str, Any], bytes]:
+def _tensor_bytes(name: str, tensor: torch.Tensor) -> tuple[dict[str, Any], memoryview]:
+    """The table entry of one tensor and a view of its raw bytes (C order, CPU).
+
+    The view shares memory with ``tensor`` when it is already a contiguous CPU tensor (no copy: a
+    checkpoint of a large map then needs no second copy of it in memory while it is written)."""
     if not isinstance(tensor, torch.Tensor):
         raise CheckpointError(f"checkpoint entry '{name}' is a {type(tensor).__name__}, not a tensor; "
                               "put plain values in the metadata instead")
@@ -110,8 +114,8 @@ def _tensor_bytes(name: str, tensor: torch.Tensor) -> tuple[dict[str, Any], byte
     if tensor.is_sparse or tensor.layout != torch.strided:
         raise CheckpointError(f"checkpoint entry '{name}' is not a dense tensor")
     flat = tensor.detach().to("cpu").contiguous().reshape(-1)
-    data = flat.view(torch.uint8).numpy().tobytes() if flat.numel() else b""
-    entry = {"name": name, "dtype": _DTYPE_NAMES[tensor.dtype], "shape": list(tensor.shape), "nbytes": len(data)}
+    data = memoryview(flat.view(torch.uint8).numpy()) if flat.numel() else memoryview(b"")
+    entry = {"name": name, "dtype": _DTYPE_NAMES[tensor.dtype], "shape": list(tensor.shape), "nbytes": data.nbytes}
     return entry, data
 
 
@@ -179,7 +183,7 @@ def read_checkpoint(path: str | Path, *, map_location: torch.device | str | None
         if data.startswith(MAGIC):
             raise CheckpointError(f"{path}: truncated checkpoint ({len(data)} bytes)")
         raise CheckpointError(f"{path}: not a mipslam checkpoint (bad magic bytes){_describe_foreign(data)}")
-    body, stored_digest = data[:-_DIGEST_SIZE], data[-_DIGEST_SIZE:]
+    body, stored_digest = memoryview(data)[:-_DIGEST_SIZE], data[-_DIGEST_SIZE:]  # a view: no copy of the file
     if hashlib.sha256(body).digest() != stored_digest:
         raise CheckpointError(f"{path}: checksum mismatch, the file is corrupt or truncated")
     (header_length,) = _LEN.unpack_from(body, len(MAGIC))
@@ -187,7 +191,7 @@ def read_checkpoint(path: str | Path, *, map_location: torch.device | str | None
     if header_length > min(MAX_HEADER_BYTES, len(body) - header_start):
         raise CheckpointError(f"{path}: header length {header_length} exceeds the file")
     try:
-        header = json.loads(body[header_start:header_start + header_length].decode("utf-8"))
+        header = json.loads(bytes(body[header_start:header_start + header_length]).decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise CheckpointError(f"{path}: unreadable header ({exc})") from exc
     if not isinstance(header, dict):
@@ -201,7 +205,7 @@ def read_checkpoint(path: str | Path, *, map_location: torch.device | str | None
     if header.get("byteorder") != sys.byteorder:
         raise CheckpointError(f"{path}: written on a {header.get('byteorder')!r}-endian machine, "
                               f"this one is {sys.byteorder}-endian")
-    payload = memoryview(body)[header_start + header_length:]
+    payload = body[header_start + header_length:]
     tensors: dict[str, torch.Tensor] = {}
     entries = header.get("tensors")
     if not isinstance(entries, list):
