@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
+import signal
 import time
 from collections import OrderedDict
 from contextlib import contextmanager
@@ -23,13 +24,14 @@ from tqdm import tqdm
 from mipslam.checkpoint import load_latest_checkpoint, save_checkpoint
 from mipslam.config import Config, config_to_dict, config_to_yaml
 from mipslam.datasets import RGBDSequence, make_sequence
-from mipslam.errors import CheckpointError, ConfigError
+from mipslam.errors import CheckpointError, ConfigError, DatasetError, MipslamError
 from mipslam.evaluation.image_metrics import psnr
 from mipslam.geometry import se3_inverse
 from mipslam.io.run_folder import RunFolder, write_json_atomic, write_text_atomic
 from mipslam.keyframes import covisibility, decide_keyframe, select_random_past, update_window_from_config
 from mipslam.losses.photometric import apply_affine_exposure
 from mipslam.loop.closer import KeyframeView, LoopCloser, LoopStep, VerificationHook, path_motion, tracking_quality
+from mipslam.loop.registration import RegistrationOptions, register_rgbd_odometry
 from mipslam.mapping import Mapper, MappingResult, MappingView
 from mipslam.rendering import render_view
 from mipslam.state import FrameRecord, SLAMState, update_running_loss
@@ -169,7 +171,47 @@ def track(stages: Stages, state: SLAMState, frame: Frame, T_wc_first: torch.Tens
     detached = type(gaussians)(*(t.detach() for t in (gaussians.means, gaussians.quats, gaussians.scales,
                                                        gaussians.opacities, gaussians.colors)))
     result = stages.tracker.track(detached, frame, prediction, state.running_loss)
+    result = relocalise(stages, state, frame, detached, result)
     return replace(result, T_wc=nearest_rigid(result.T_wc))
+
+
+# Dense RGB-D odometry (Open3D's coarse-to-fine hybrid term, as loop verification uses) that
+# relocalises a frame against the previous one; the bounds accept up to a 1 m / 45 deg jump.
+_RELOCALISE_REGISTRATION = RegistrationOptions(method="rgbd_odometry", pixel_stride=1, min_points=100,
+                                               max_correction_m=1.0, max_correction_deg=45.0)
+
+
+def relocalise(stages: Stages, state: SLAMState, frame: Frame, gaussians, result: TrackingResult) -> TrackingResult:
+    """Re-track a frame from a pose found by RGB-D alignment to the previous frame; returns the better result.
+
+    Runs when the tracking loss stays above ``tracking.relocalise_loss_ratio`` times its running level
+    (the camera jumped, was bumped, or frames were dropped: the motion model started tracking far from
+    the truth and its small steps could not get there); the lower loss wins. Ratio 0 turns it off.
+    """
+    running = state.running_loss
+    ratio = stages.config.tracking.relocalise_loss_ratio
+    if (ratio <= 0 or running is None or result.status not in ("ok", "loss_jump") or not state.frames
+            or result.loss <= ratio * running or not state.frames[-1].tracked):
+        return result
+    previous = state.frames[-1]
+    before = stages.frames[previous.index]
+    T_wc_prev = previous.T_wc.to(torch.float64)
+    try:
+        aligned = register_rgbd_odometry(before.color, before.depth, frame.color, frame.depth, frame.intrinsics,
+                                         se3_inverse(T_wc_prev) @ result.T_wc.to(torch.float64),
+                                         _RELOCALISE_REGISTRATION)
+    except MipslamError as exc:  # Open3D unavailable: keep tracking's result
+        log.debug("relocalisation skipped: %s", exc)
+        return result
+    if not aligned.accepted:
+        return result
+    retry = stages.tracker.track(gaussians, frame, T_wc_prev @ aligned.T_ij, running)
+    if retry.ok and (not result.ok or retry.loss < result.loss):
+        log.info("frame %d: relocalised (tracking loss %.4f, %.1fx its running level; %.4f after a %.2f m, %.1f deg "
+                 "RGB-D alignment to frame %d)", frame.index, result.loss, result.loss / running, retry.loss,
+                 aligned.correction_m, aligned.correction_deg, previous.index)
+        return retry
+    return result
 
 
 def nearest_rigid(T_wc: torch.Tensor) -> torch.Tensor:
@@ -316,12 +358,61 @@ def _keyframe_psnr(stages: Stages, state: SLAMState, keyframe_id: int, T_wc: tor
 
 # ----------------------------------------------------------------------------- the run
 
+@contextmanager
+def _ctrl_c_after_the_frame():
+    """While the frame loop runs, a first Ctrl-C (SIGINT) only asks to stop: the current frame is
+    completed, so the checkpoint written then holds a consistent state (a frame interrupted inside
+    mapping would leave keyframe, window, map and loop-closure state out of step, and such a
+    checkpoint cannot be resumed). A second Ctrl-C interrupts at once. Yields a list that becomes
+    non-empty when a stop was asked for. Where handlers cannot be set (not the main thread), Ctrl-C
+    keeps its default behaviour."""
+    requested: list[bool] = []
+
+    def ask_to_stop(signum, frame):
+        if requested:
+            raise KeyboardInterrupt
+        requested.append(True)
+        log.warning("Ctrl-C: stopping after the current frame (press Ctrl-C again to stop at once)")
+
+    try:
+        previous = signal.signal(signal.SIGINT, ask_to_stop)
+    except ValueError:  # not the main thread
+        yield requested
+        return
+    try:
+        yield requested
+    finally:
+        signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
+
+
+class _ProgressLog:
+    """A log line every ``PROGRESS_LOG_S`` seconds when the progress bar is off (stderr not a terminal:
+    CI, nohup, a batch queue), so a long run still says how far it is."""
+
+    PROGRESS_LOG_S = 30.0
+
+    def __init__(self, total: int, start_frame: int):
+        self.total, self.start_frame = total, start_frame
+        self.started = self.last = time.perf_counter()
+
+    def frame_done(self, state: SLAMState, record: FrameRecord, bar_disabled: bool) -> None:
+        now = time.perf_counter()
+        if not bar_disabled or (now - self.last < self.PROGRESS_LOG_S and state.next_frame < self.total):
+            return
+        self.last = now
+        rate = (state.next_frame - self.start_frame) / max(now - self.started, 1e-9)
+        log.info("frame %d/%d, %.2f frames/s, %d keyframes, %d Gaussians, tracking loss %.4f", state.next_frame,
+                 self.total, rate, len(state.keyframe_frames), len(state.gaussian_map), record.tracking_loss)
+
+
 def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evaluate: bool = True,
              hooks: PipelineHooks | None = None) -> RunSummary:
     """Run SLAM on the configured sequence into ``run_dir`` (resuming from its last good checkpoint).
 
     ``hooks``: fault injection for tests and benchmarks (:class:`PipelineHooks`); None in normal runs.
     """
+    if resume and not Path(run_dir).is_dir():
+        raise CheckpointError(f"{run_dir}: no such run folder to resume; check the path, or start a new run with --out")
     folder = RunFolder(run_dir).create()
     folder.remove_stale_temporaries()
     sequence = make_sequence(config.dataset)
@@ -335,17 +426,36 @@ def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evalu
     started, start_frame = time.perf_counter(), state.next_frame
     bar = tqdm(range(state.next_frame, len(sequence)), desc="mipslam", unit="frame", initial=state.next_frame,
                total=len(sequence), dynamic_ncols=True, disable=None)
+    frame_complete = True  # False while process_frame runs: the state is then half-updated
+    progress = _ProgressLog(len(sequence), start_frame)
     try:
-        for index in bar:
-            record = process_frame(stages, state, index, float(sequence.timestamps[index]), T_wc_first)
-            if not record.tracked:
-                log.warning("frame %d: tracking failed (%s); kept the motion-model pose", index, record.status)
-            if config.run.checkpoint_every and state.next_frame % config.run.checkpoint_every == 0:
-                _checkpoint(folder, state, config)
-            bar.set_postfix(gaussians=len(state.gaussian_map), loss=f"{record.tracking_loss:.4f}", refresh=False)
+        with _ctrl_c_after_the_frame() as stop_requested:
+            for index in bar:
+                frame_complete = False
+                record = process_frame(stages, state, index, float(sequence.timestamps[index]), T_wc_first)
+                frame_complete = True
+                if not record.tracked:
+                    log.warning("frame %d: tracking failed (%s); kept the motion-model pose", index, record.status)
+                if config.run.checkpoint_every and state.next_frame % config.run.checkpoint_every == 0:
+                    _checkpoint(folder, state, config)
+                bar.set_postfix(gaussians=len(state.gaussian_map), loss=f"{record.tracking_loss:.4f}", refresh=False)
+                progress.frame_done(state, record, bar.disable)
+                if stop_requested:
+                    raise KeyboardInterrupt
     except KeyboardInterrupt:
-        _checkpoint(folder, state, config)
-        log.warning("interrupted: state saved after frame %d; continue with --resume %s", state.next_frame - 1, folder.root)
+        if frame_complete:
+            _checkpoint(folder, state, config)
+            log.warning("interrupted: state saved after frame %d; continue with --resume %s", state.next_frame - 1,
+                        folder.root)
+        else:  # a second Ctrl-C inside a frame: its half-done state must not become a checkpoint
+            log.warning("interrupted inside frame %d: not saved; --resume %s continues from the last checkpoint",
+                        state.next_frame - 1, folder.root)
+        raise
+    except DatasetError:
+        if frame_complete or state.next_frame == index:  # the frame could not be read: nothing of it is in the state
+            _checkpoint(folder, state, config)
+            log.warning("state saved after frame %d; fix the file and continue with --resume %s", state.next_frame - 1,
+                        folder.root)
         raise
     finally:
         bar.close()

@@ -198,7 +198,6 @@ def test_resume_of_a_folder_without_checkpoints(tmp_path, tiny_sequence, capsys)
     assert str(empty) in err and "checkpoint" in err
 
 
-@pytest.mark.xfail(strict=True, reason="needs /tmp/h13_patches/resume_missing_folder.diff in mipslam/pipeline.py")
 def test_resume_of_a_nonexistent_folder_creates_nothing(tmp_path, tiny_sequence, capsys):
     typo = tmp_path / "runs" / "typo"
     assert main(run_argv(tiny_sequence, resume=typo)) == 2
@@ -314,9 +313,7 @@ def snapshot(folder: Path) -> dict[str, bytes]:
 @pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="needs /proc/self/fd to tell which file is written")
 @pytest.mark.parametrize("victim", [
     "config.yaml", "checkpoint", "frames.json", "map.ply", "timings.json", "run.json",
-    # io/tum.py has its own temporary-file write that lets the OSError through (exit 1, "unexpected OSError")
-    pytest.param("traj_est.txt", marks=pytest.mark.xfail(
-        strict=True, reason="needs /tmp/h13_patches/tum_atomic_write.diff in mipslam/io/tum.py")),
+    "traj_est.txt",
 ])
 def test_disk_full_while_writing_outputs(tmp_path, finished_run, tiny_sequence, capsys, monkeypatch, victim):
     """``--resume`` of a finished run rewrites its checkpoint and outputs; the disk fills up while one of
@@ -370,7 +367,6 @@ def test_unreadable_frame_mid_run_is_one_line_naming_the_file(tmp_path, sequence
     assert not (tmp_path / "run" / "map.ply").exists() and not (tmp_path / "run" / "traj_est.txt").exists()
 
 
-@pytest.mark.xfail(strict=True, reason="needs /tmp/h13_patches/checkpoint_on_dataset_error.diff in mipslam/pipeline.py")
 def test_unreadable_frame_mid_run_keeps_the_finished_frames(tmp_path, sequence_with_broken_frame, finished_run, capsys):
     """Frames 0 and 1 were done when frame 2 turned out unreadable: they are checkpointed, so after the
     file is fixed ``--resume`` continues at frame 2 and ends where an uninterrupted run ends."""

@@ -47,7 +47,6 @@ def test_three_sigkill_trials_resume_to_the_uninterrupted_run(setup):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="needs /tmp/h13_patches/ctrl_c_after_the_frame.diff in mipslam/pipeline.py")
 @pytest.mark.parametrize("keyframe", [1, 2], ids=["first keyframe", "second keyframe"])
 def test_ctrl_c_inside_mapping_saves_a_checkpoint_that_resumes_to_the_same_run(setup, keyframe):
     """Today Ctrl-C inside mapping checkpoints a half-done frame: inside the first keyframe's mapping a

@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +20,7 @@ import torch
 
 from mipslam.errors import DatasetError
 from mipslam.geometry import quat_wxyz_to_rotmat, quat_wxyz_to_xyzw, quat_xyzw_to_wxyz, rigidity_error, rotmat_to_quat_wxyz
+from mipslam.io.run_folder import write_text_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -247,17 +246,12 @@ def write_tum_trajectory(path: str | Path, timestamps, T_wc) -> Path:
             f"{t_text} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {q_xyzw[0]:.9f} {q_xyzw[1]:.9f} {q_xyzw[2]:.9f} {q_xyzw[3]:.9f}\n"
         )
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
-        os.chmod(tmp_name, 0o644)  # mkstemp creates 0600; a trajectory is an ordinary output file
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            handle.writelines(lines)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp_name, path)
-    except BaseException:
-        Path(tmp_name).unlink(missing_ok=True)
-        raise
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DatasetError(path, f"cannot create the folder ({exc.strerror or exc}); choose a writable output path") from exc
+    # The run folder's atomic write: temporary file, fsync, rename, fsync of the folder; an OSError
+    # (disk full, permission) becomes a one-line MipslamError naming the file, the old file unchanged.
+    write_text_atomic(path, "".join(lines))
     logger.debug("wrote %d poses to %s", len(stamp_texts), path)
     return path
