@@ -7,6 +7,7 @@ import math
 import re
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -531,3 +532,18 @@ def test_profile_kernels_times_each_extension_call(ext):
     assert backward.calls == {"rasterize_backward": 1, "project_backward": 1}
     assert forward.total > 0 and backward.total > 0
     assert not isinstance(cpu_backend.load_extension(), cpu_backend._TimedExtension)
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="flock is POSIX")
+def test_stale_torch_build_lock_of_a_killed_build_is_removed(tmp_path):
+    # A process killed during the build leaves torch's plain 'lock' file; without this, every later
+    # process would wait on it for ever.
+    (tmp_path / "lock").write_text("")
+    probe = ("import fcntl, sys; f = open(sys.argv[1], 'a+b')\n"
+             "try:\n    fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)\nexcept OSError:\n    sys.exit(3)\n")
+    with cpu_backend._exclusive_build(tmp_path):
+        assert not (tmp_path / "lock").exists()
+        held = subprocess.run([sys.executable, "-c", probe, str(tmp_path / "mipslam-build.flock")], check=False)
+        assert held.returncode == 3  # another process cannot build while this one does
+    free = subprocess.run([sys.executable, "-c", probe, str(tmp_path / "mipslam-build.flock")], check=False)
+    assert free.returncode == 0

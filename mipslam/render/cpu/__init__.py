@@ -153,9 +153,36 @@ def _build():
     build_dir = cache_root() / name
     build_dir.mkdir(parents=True, exist_ok=True)
     log.info("loading the mipslam cpu rasterizer from %s (compiled on first use, about 30-60 s)", build_dir)
-    return cpp_extension.load(name=name, sources=[str(_SOURCE_DIR / s) for s in _SOURCES],
-                              extra_cflags=cflags, extra_ldflags=ldflags, build_directory=str(build_dir),
-                              verbose=False)
+    with _exclusive_build(build_dir):
+        return cpp_extension.load(name=name, sources=[str(_SOURCE_DIR / s) for s in _SOURCES],
+                                  extra_cflags=cflags, extra_ldflags=ldflags, build_directory=str(build_dir),
+                                  verbose=False)
+
+
+@contextlib.contextmanager
+def _exclusive_build(build_dir: Path):
+    """Serialise builds of one extension across processes with a kernel lock (``flock``).
+
+    torch's own build lock is a plain file (``build_dir/lock``) that a process killed mid-build
+    (kill -9, power loss) leaves behind, and every later process then waits on it for ever. The
+    kernel drops a ``flock`` with its holder, so whoever holds this one knows that any ``lock`` file
+    left in the folder is stale and removes it. Without fcntl (Windows) torch's lock alone is used.
+    """
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    with open(build_dir / "mipslam-build.flock", "a+b") as handle:
+        fcntl.flock(handle.fileno(), fcntl.LOCK_EX)
+        try:
+            stale = build_dir / "lock"
+            if stale.exists():
+                log.warning("removing %s left by a build that was killed", stale)
+                stale.unlink(missing_ok=True)
+            yield
+        finally:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_UN)
 
 
 def load_extension():
