@@ -14,6 +14,7 @@ from mipslam.datasets import RGBDSequence
 from mipslam.io.ply import write_map_ply
 from mipslam.io.run_folder import RunFolder, write_json_atomic
 from mipslam.io.tum import write_tum_trajectory
+from mipslam.render import available_backends
 from mipslam.state import SLAMState
 
 RUN_INFO = "run.json"
@@ -63,7 +64,20 @@ def write_run_outputs(folder: RunFolder, state: SLAMState, sequence: RGBDSequenc
         "gaussians": len(state.gaussian_map),
         "device": str(state.gaussian_map.device),
         "torch_threads": torch.get_num_threads(),
+        "render_backend": render_backend_summary(config, state.gaussian_map.device),
     })
+
+
+def render_backend_summary(config: Config, device: torch.device) -> dict:
+    """Which renderer backend the run asked for, which this machine has, and which ``auto`` resolves to
+    (the compiled cpu backend for CPU tensors when it built; torch otherwise, e.g. on CUDA)."""
+    available = available_backends()
+    requested = config.render.backend
+    if requested == "auto":
+        used = "cpu" if device.type == "cpu" and "cpu" in available else "torch"
+    else:
+        used = requested
+    return {"requested": requested, "available": list(available), "used": used}
 
 
 def loop_summary(state: SLAMState, config: Config) -> dict:

@@ -163,6 +163,7 @@ def read_job_outputs(run_dir: Path) -> dict[str, Any]:
         "frames": frames, "fps": _finite(timings.get("frames_per_second")), "stage_ms_per_frame": stage_ms,
         "gaussians": info.get("gaussians"), "keyframes": info.get("keyframes"), "device": info.get("device"),
         "torch_threads": info.get("torch_threads"),
+        "backend_used": (info.get("render_backend") or {}).get("used"),
     }
     return out
 
@@ -237,8 +238,8 @@ def execute_job(job: Job) -> JobResult:
         except (OSError, RuntimeError, ValueError) as exc:  # torch/numpy failures: a row, not a lost bench
             error = f"evaluation failed: {type(exc).__name__}: {str(exc)[:ERROR_TEXT_LIMIT]}"
         eval_wall = time.perf_counter() - start
-    backend = None
-    if measured.get("device") is not None:
+    backend = measured.pop("backend_used", None)  # recorded by the run itself (run.json, render_backend.used)
+    if backend is None and measured.get("device") is not None:
         try:
             backend = resolved_render_backend(setting.render_backend, measured.get("device"))
         except ImportError as exc:  # the renderer package itself cannot load here: say so instead of guessing
