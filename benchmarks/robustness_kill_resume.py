@@ -8,7 +8,7 @@ reference run, then per trial:
 1. start ``mipslam run CONFIG --out RUN ...`` as a child process;
 2. SIGKILL it at a seeded random moment. Trials cycle through four strategies so that kills land
    in every part of the run: ``time`` (once a random frame has started, a uniform delay of up to
-   one frame's average time), ``tracking``, ``mapping`` and ``checkpoint`` (wait until the child has
+   the reference's median frame time), ``tracking``, ``mapping`` and ``checkpoint`` (wait until the child has
    entered that phase for the n-th time, n drawn at random, then kill at once). ``--ctrl-c N`` adds
    N trials that send SIGINT (Ctrl-C) instead, during ``mapping``, ``tracking`` or ``checkpoint``:
    mipslam must exit with code 130 after saving a checkpoint that resumes to the same result;
@@ -126,6 +126,7 @@ class Setup:
     run_seconds: float  # the reference child from the end of its imports (marker "startup") to its exit
     frames: int
     keyframes: int = 0  # of the reference run: how often mapping runs
+    frame_seconds: float = 0.0  # median time of one frame of the reference (first frame, with any build, left out)
 
 
 def mipslam_argv(setup: Setup, *, out: Path | None = None, resume: Path | None = None) -> list[str]:
@@ -170,23 +171,30 @@ def prepare(workdir: Path, *, frames: int = 10, width: int = 40, height: int = 3
         run_slam(config, setup.reference, evaluate=False)
         seconds = time.perf_counter() - started
         return Setup(sequence, setup.config, setup.settings, setup.reference, seconds, seconds, frames,
-                     _keyframes(setup.reference))
+                     _keyframes(setup.reference), seconds / frames)
     marker = workdir / "reference.marker"
     marker.unlink(missing_ok=True)
     started = time.perf_counter()
     child = subprocess.Popen(child_command(marker, mipslam_argv(setup, out=setup.reference)), env=child_environment(),
                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     imported = None
+    frame_started: dict[int, float] = {}
     while child.poll() is None:
-        if imported is None and read_marker(marker)[0] != "not_started":
+        phase, _, frame = read_marker(marker)
+        if imported is None and phase != "not_started":
             imported = time.perf_counter()
+        if frame >= 0 and frame not in frame_started:
+            frame_started[frame] = time.perf_counter()
         time.sleep(0.01)
     seconds = time.perf_counter() - started
     if child.returncode != 0:
         raise RuntimeError(f"reference run failed (exit {child.returncode}): {child.stderr.read().strip()[-2000:]}")
     run_seconds = seconds - (imported - started) if imported is not None else seconds
+    starts = [frame_started[k] for k in sorted(frame_started) if k >= 1]  # frame 0 may include the renderer's build
+    steps = sorted(b - a for a, b in zip(starts, starts[1:]))
+    frame_seconds = steps[len(steps) // 2] if steps else run_seconds / frames
     return Setup(sequence, setup.config, setup.settings, setup.reference, seconds, run_seconds, frames,
-                 _keyframes(setup.reference))
+                 _keyframes(setup.reference), frame_seconds)
 
 
 def _keyframes(run: Path) -> int:
@@ -292,7 +300,7 @@ def run_trial(setup: Setup, workdir: Path, trial: int, strategy: str, rng: rando
     target_count = rng.randint(*first_and_last) if occurrence is None else occurrence
     # "time": a random frame, then a random moment within about one frame's time (robust to the machine's load)
     target_frame = rng.randint(0, setup.frames - 1) if phase_wanted == "time" else 0
-    delay = rng.uniform(0.0, setup.run_seconds / setup.frames) if phase_wanted == "time" else 0.0
+    delay = rng.uniform(0.0, setup.frame_seconds or setup.run_seconds / setup.frames) if phase_wanted == "time" else 0.0
     started = time.perf_counter()
     imported = None
     child = subprocess.Popen(child_command(marker, mipslam_argv(setup, out=run_dir)), env=env,
@@ -367,7 +375,7 @@ def run_trials(workdir: Path, *, trials: int = 20, seed: int = 0, frames: int = 
 
 def format_table(setup: Setup, results: list[TrialResult]) -> str:
     lines = [f"reference: {setup.frames} frames, {setup.keyframes} keyframes, {setup.reference_seconds:.1f} s "
-             f"uninterrupted ({setup.run_seconds:.1f} s after the imports)",
+             f"uninterrupted ({setup.run_seconds:.1f} s after the imports, median frame {setup.frame_seconds:.2f} s)",
              f"{'trial':>5} {'strategy':>17} {'kill s':>7} {'phase at kill':>14} {'frame':>5} {'ckpts':>5} "
              f"{'resumed@':>8} {'rc':>3} {'max |dT|':>9} {'max |dmap|':>10} {'end ckpts':>9}  result"]
     for r in results:
