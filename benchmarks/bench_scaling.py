@@ -41,6 +41,9 @@ import sys
 import time
 from pathlib import Path
 
+# Sibling script (the benchmarks folder is on sys.path when a script in it runs): one thread set-up for both.
+from bench_render_speed import configure_threads
+
 GAUSSIAN_COUNTS = (1_000, 3_000, 10_000, 30_000, 100_000, 200_000)
 RESOLUTIONS = ((80, 60), (160, 120), (320, 240), (640, 480), (1280, 720))
 KEYFRAME_COUNTS = (25, 50, 100, 200, 400, 1000, 2000)
@@ -64,15 +67,6 @@ def parse_args(argv=None):
     if args.quick:
         args.repeats, args.pgo_repeats = 3, 3
     return args
-
-
-def configure_threads(threads: int):
-    os.environ["OMP_NUM_THREADS"] = str(threads)
-    os.environ["MKL_NUM_THREADS"] = str(threads)
-    import torch
-
-    torch.set_num_threads(threads)
-    return torch
 
 
 # ----------------------------------------------------------------------------- scene
