@@ -94,10 +94,10 @@ def loop_summary(state: SLAMState, config: Config) -> dict:
                           "current estimate, verification fitness and inlier RMSE (m), how far registration moved the "
                           "initial guess, accepted (became a loop edge) or the reason for the rejection",
             "optimisations": "per keyframe that added loop edges: graph size, cost before/after (robust, on the edges "
-                             "kept), LM iterations, pruned loop edges [i, j], final weight and chi2 of every loop edge, "
-                             "whether the correction was applied and why, largest keyframe correction, map PSNR at the "
-                             "loop's keyframes before the correction, with only the poses corrected, and after the "
-                             "Gaussians moved with their anchors (dB), seconds",
+                             "kept), LM iterations, pruned loop edges [i, j], final weight and chi2 of its new and pruned "
+                             "loop edges, whether the correction was applied and why, largest keyframe correction, map "
+                             "PSNR at the loop's keyframes before the correction, with only the poses corrected, after "
+                             "the Gaussians moved with their anchors and after the refinement steps (dB), seconds",
         },
         "summary": {
             "keyframes": len(state.keyframe_frames),
