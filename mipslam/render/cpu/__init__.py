@@ -421,6 +421,21 @@ def project_footprints(means, quats, scales, opacities, colors, viewmat, K, widt
     return FootprintProjection(*out)
 
 
+def _torch_footprints(proj, mode: str, max_nodes: int, gamma: float, point_area: float):
+    """The torch footprint parameters of projected Gaussians and their EAA node counts (1 outside eaa).
+
+    -> xx, xy, yy, det [N] (the mode's sampling covariance), opacity [N], node counts [N] int64
+    """
+    xx, xy, yy, det, opacity = footprint.footprint_parameters(mode, *proj.cov2d.unbind(-1), proj.cov_det,
+                                                              proj.opacities)
+    if mode == "eaa":
+        nodes = footprint.eaa_node_counts(xx, xy, yy, det, max_nodes=int(max_nodes), gamma=gamma,
+                                          point_area=point_area)
+    else:
+        nodes = torch.ones_like(opacity, dtype=torch.int64)
+    return xx, xy, yy, det, opacity, nodes
+
+
 def reference_footprints(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, *, mode: str,
                          options) -> FootprintProjection:
     """What :func:`project_footprints` computes, in torch (the readable reference):
@@ -434,13 +449,8 @@ def reference_footprints(means, quats, scales, opacities, colors, viewmat, K, wi
         far_plane=options.far_plane, extent_sigma=footprint.EXACT_K_SIGMA if mode == "exact" else options.k_sigma,
         extent_pad=0.5 if box_mode else 0.0, extent_dilation=dilation, filter_3d_scale=options.filter_3d_scale,
         max_sampling_rate=options.max_sampling_rate)
-    xx, xy, yy, det, opacity = footprint.footprint_parameters(mode, *proj.cov2d.unbind(-1), proj.cov_det,
-                                                              proj.opacities)
-    if mode == "eaa":
-        nodes = footprint.eaa_node_counts(xx, xy, yy, det, max_nodes=int(options.eaa_max_nodes),
-                                          gamma=options.eaa_gamma, point_area=options.eaa_point_area)
-    else:
-        nodes = torch.ones_like(opacity, dtype=torch.int64)
+    xx, xy, yy, det, opacity, nodes = _torch_footprints(proj, mode, options.eaa_max_nodes, options.eaa_gamma,
+                                                        options.eaa_point_area)
     with torch.no_grad():
         ext = options.k_sigma * torch.sqrt(torch.maximum(proj.cov2d[:, 0], proj.cov2d[:, 2]) + dilation)
         radii = torch.where(proj.visible, ext + (0.5 if box_mode else 0.0), torch.zeros_like(ext))
@@ -526,14 +536,8 @@ def rasterize_projected(proj, width: int, height: int, settings, **_unused) -> C
     mode = settings.mode
     if mode not in MODE_IDS:
         raise RenderError(f"rasterize (cpu backend): unknown mode '{mode}'")
-    cov_xx, cov_xy, cov_yy = proj.cov2d.unbind(-1)
-    xx, xy, yy, det, opacity = footprint.footprint_parameters(mode, cov_xx, cov_xy, cov_yy, proj.cov_det,
-                                                              proj.opacities)
-    if mode == "eaa":
-        node_counts = footprint.eaa_node_counts(xx, xy, yy, det, max_nodes=int(settings.max_nodes),
-                                                gamma=settings.gamma, point_area=settings.point_area)
-    else:
-        node_counts = torch.ones_like(opacity, dtype=torch.int64)
+    xx, xy, yy, det, opacity, node_counts = _torch_footprints(proj, mode, settings.max_nodes, settings.gamma,
+                                                              settings.point_area)
     gl_nodes, gl_weights = _gauss_legendre_f32(settings.exact_order if mode == "exact" else 1)
     cov = torch.stack([xx, xy, yy, det], -1)
     color, depth, alpha, stats = RasterizeProjected.apply(
