@@ -180,6 +180,9 @@ class MappingConfig:
     add_opacity_threshold: float = 0.5
     add_depth_error_ratio: float = 10.0  # depth error above ratio * median error adds Gaussians
     densify_pixel_stride: int = 1  # one new Gaussian per stride x stride pixels
+    # A new Gaussian's std-dev in units of its cell (stride pixels at its depth). 1 blurs neighbours into each
+    # other (a 20-iteration map keeps that blur and biases tracking); below about 0.5 the splats leave gaps.
+    initial_scale_factor: float = 1.0
     initial_opacity: float = 0.5
     prune_opacity: float = 0.005
     prune_max_sigma_px: float = 50.0  # std-dev larger than this many pixels (seen from the keyframe) is absurd
@@ -193,6 +196,7 @@ class MappingConfig:
         _check(self.densify_pixel_stride >= 1, "mapping.densify_pixel_stride", "must be >= 1")
         _check(0 < self.initial_opacity < 1, "mapping.initial_opacity", "must be in (0, 1)")
         _check(self.prune_max_sigma_px > 0, "mapping.prune_max_sigma_px", "must be positive")
+        _check(self.initial_scale_factor > 0, "mapping.initial_scale_factor", "must be positive")
 
 
 @dataclass(frozen=True)

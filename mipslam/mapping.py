@@ -97,7 +97,8 @@ class Mapper:
         mask = cap_pixel_mask(mask & grid, budget)
         new = gaussians_from_rgbd(view.color, view.depth, view.intrinsics.matrix(gmap.dtype, gmap.device),
                                   view.T_wc.to(gmap.dtype), mask, initial_opacity=cfg.initial_opacity,
-                                  anchor_keyframe=view.keyframe_id, created_frame=frame_index, pixel_stride=stride)
+                                  anchor_keyframe=view.keyframe_id, created_frame=frame_index, pixel_stride=stride,
+                                  scale_factor=cfg.initial_scale_factor)
         gmap.add(new, optimizer)
         return len(new)
 
