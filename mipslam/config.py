@@ -223,8 +223,14 @@ class LoopConfig:
     # Mapping steps over the loop's keyframes right after the map moved with its anchors: Gaussians
     # that mapping had pulled towards drifted views do not move back with any anchor; this re-fits them.
     refine_iterations: int = 20
+    # New loop edges that already agree with the current poses (every e^T Omega e at most this, chi-square
+    # with 6 dof; 12.6 is its 95% quantile) join the graph without an optimisation: on a revisited route
+    # nearly every keyframe verifies a loop, and re-optimising the whole graph for each made the pose-graph
+    # time per frame grow with the run's length. 0 optimises on every new loop edge.
+    consistent_chi2: float = 12.6
 
     def __post_init__(self):
+        _check(self.consistent_chi2 >= 0, "loop.consistent_chi2", "must be >= 0 (0 = always optimise)")
         _check(self.refine_iterations >= 0, "loop.refine_iterations", "must be >= 0")
         _check(self.min_keyframe_gap >= 1, "loop.min_keyframe_gap", "must be >= 1")
         _check(self.num_eigenvectors >= 1, "loop.num_eigenvectors", "must be >= 1")

@@ -221,6 +221,49 @@ def test_a_wrong_loop_edge_is_pruned_or_down_weighted(drift_sequence, drift_runs
     assert any(entry["accepted"] for entry in report["loops"])  # the correct loops stay
 
 
+def closer_steps(sequence: Path, consistent_chi2: float, drift_per_keyframe: torch.Tensor) -> list:
+    """LoopCloser over every 2nd frame of ``sequence`` as keyframes, at ground-truth poses times a growing drift;
+    verification returns the exact ground-truth relative pose (a perfect loop edge)."""
+    from dataclasses import replace
+
+    from mipslam.loop.closer import KeyframeView, LoopCloser
+
+    config = drift_config(sequence, f"loop.consistent_chi2={consistent_chi2}")
+    frames = make_sequence(config.dataset)
+    gt = frames.gt_T_wc.to(F64)[::2]
+    drifted = torch.stack([gt[k] @ se3_exp(k * drift_per_keyframe) for k in range(len(gt))])
+
+    def exact_edge(i, k, result):
+        return replace(result, T_ij=se3_inverse(gt[i]) @ gt[k], accepted=True, reason="")
+
+    closer, state, steps = LoopCloser(config.loop, verification_hook=exact_edge), LoopState.empty(), []
+
+    def view(k: int) -> KeyframeView:
+        frame = frames[2 * k]
+        return KeyframeView(k, 2 * k, frame.color, frame.depth, frame.intrinsics)
+
+    for k in range(len(gt)):
+        step = closer.process_keyframe(state, view(k), drifted[: k + 1], (0.05, 0.05, 1.0), view)
+        state, steps = step.state, steps + [step]
+    return steps
+
+
+def test_loop_edges_that_agree_with_the_poses_join_the_graph_without_an_optimisation(drift_sequence):
+    no_drift = torch.zeros(6, dtype=F64)
+    gated = closer_steps(drift_sequence, 12.6, no_drift)
+    verified = [s for s in gated if any(c.accepted for c in s.candidates)]
+    assert verified, "the sequence should verify loops"
+    # Edges that the poses already satisfy join the graph, and nothing is optimised.
+    assert all(s.optimisation is None and s.pgo_seconds == 0.0 for s in gated)
+    assert int(gated[-1].state.graph.edge_is_loop.sum()) == sum(sum(c.accepted for c in s.candidates) for s in gated)
+    # consistent_chi2 = 0 optimises on every keyframe that verified a loop.
+    ungated = closer_steps(drift_sequence, 0.0, no_drift)
+    assert [s.optimisation is not None for s in ungated] == [any(c.accepted for c in s.candidates) for s in ungated]
+    # Poses that drifted away from the loop measurements are optimised.
+    drifting = closer_steps(drift_sequence, 12.6, torch.tensor([0.004, 0, 0, 0, 0.01, 0], dtype=F64))
+    assert any(s.optimisation is not None for s in drifting)
+
+
 # ----------------------------------------------------------------------------- resume
 
 

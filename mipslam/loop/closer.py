@@ -14,7 +14,10 @@ in the SLAM loop"):
 4. each candidate i is verified by registering the two keyframes' RGB-D data
    (:func:`mipslam.loop.registration.register_rgbd_pair`, keyframe i the target); an accepted
    registration becomes a loop edge (i, k);
-5. when this keyframe added loop edges, the graph is optimised (:func:`optimize_pose_graph` with
+5. when this keyframe added loop edges that disagree with the current poses (some ``e^T Omega e``
+   above ``consistent_chi2``; edges that agree join the graph without an optimisation, which keeps a
+   revisited route from re-optimising the whole graph on every keyframe), the graph is optimised
+   (:func:`optimize_pose_graph` with
    :func:`mipslam.loop.from_config.pgo_options`). The odometry measurements are refreshed from the
    current keyframe poses first, so the optimisation only distributes the loop error along the
    chain and keeps the local structure that tracking and mapping estimated (as ORB-SLAM's
@@ -41,7 +44,7 @@ from mipslam.errors import CheckpointError, MipslamError
 from mipslam.geometry import rotation_angle, se3_inverse
 from mipslam.loop.descriptors import DescriptorOptions, global_descriptor, select_loop_candidates
 from mipslam.loop.from_config import candidate_options, pgo_options, registration_options
-from mipslam.loop.pose_graph import PoseGraph
+from mipslam.loop.pose_graph import PoseGraph, edge_residuals, mahalanobis_sq
 from mipslam.loop.registration import RegistrationResult, register_rgbd_pair
 from mipslam.loop.solver import PGOResult, optimize_pose_graph
 from mipslam.types import Intrinsics
@@ -307,9 +310,23 @@ class LoopCloser:
         if reports:
             logger.info("keyframe %d: %d loop candidate(s), %d verified", k, len(reports), len(new_edges))
 
-        if not new_edges:
+        if not new_edges or self._agrees_with_poses(graph, new_edges):
             return LoopStep(LoopState(graph, descriptors), tuple(reports), None, None, 0.0)
         return self._optimise(graph, descriptors, keyframe, new_edges, tuple(reports))
+
+    def _agrees_with_poses(self, graph: PoseGraph, new_edges: list[int]) -> bool:
+        """True when every new loop edge's e^T Omega e at the current poses is at most loop.consistent_chi2."""
+        limit = self.config.consistent_chi2
+        if limit <= 0:
+            return False
+        edges = torch.tensor(new_edges, dtype=torch.long)
+        residuals = edge_residuals(graph.poses, graph.edge_nodes[edges], graph.measurements[edges])
+        chi2 = mahalanobis_sq(residuals, graph.information[edges])
+        agrees = bool((chi2 <= limit).all())
+        if agrees:
+            logger.info("keyframe %d: %d new loop edge(s) agree with the poses (max chi2 %.2f <= %.1f); no optimisation",
+                        graph.num_nodes - 1, len(new_edges), float(chi2.max()), limit)
+        return agrees
 
     def _optimise(self, graph: PoseGraph, descriptors: torch.Tensor, keyframe: KeyframeView, new_edges: list[int],
                   reports: tuple[CandidateReport, ...]) -> LoopStep:
