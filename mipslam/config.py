@@ -223,6 +223,12 @@ class LoopConfig:
     # Mapping steps over the loop's keyframes right after the map moved with its anchors: Gaussians
     # that mapping had pulled towards drifted views do not move back with any anchor; this re-fits them.
     refine_iterations: int = 20
+    # Verification also rejects a registration that moved the current estimate by more than this many
+    # standard deviations of the drift the odometry edges allow over the keyframe path from the candidate
+    # to the query (odometry_sigma + odometry_drift_ratio * path, translation and rotation): a loop 20
+    # keyframes back cannot need a 20 cm correction. With one loop edge the pose graph has nothing to
+    # outvote a wrong one. 0 turns the check off.
+    max_drift_sigmas: float = 3.0
     # New loop edges that already agree with the current poses (every e^T Omega e at most this, chi-square
     # with 6 dof; 12.6 is its 95% quantile) join the graph without an optimisation: on a revisited route
     # nearly every keyframe verifies a loop, and re-optimising the whole graph for each made the pose-graph
@@ -230,6 +236,7 @@ class LoopConfig:
     consistent_chi2: float = 12.6
 
     def __post_init__(self):
+        _check(self.max_drift_sigmas >= 0, "loop.max_drift_sigmas", "must be >= 0 (0 = no check)")
         _check(self.consistent_chi2 >= 0, "loop.consistent_chi2", "must be >= 0 (0 = always optimise)")
         _check(self.refine_iterations >= 0, "loop.refine_iterations", "must be >= 0")
         _check(self.min_keyframe_gap >= 1, "loop.min_keyframe_gap", "must be >= 1")

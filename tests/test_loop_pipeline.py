@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -224,8 +225,6 @@ def test_a_wrong_loop_edge_is_pruned_or_down_weighted(drift_sequence, drift_runs
 def closer_steps(sequence: Path, consistent_chi2: float, drift_per_keyframe: torch.Tensor) -> list:
     """LoopCloser over every 2nd frame of ``sequence`` as keyframes, at ground-truth poses times a growing drift;
     verification returns the exact ground-truth relative pose (a perfect loop edge)."""
-    from dataclasses import replace
-
     from mipslam.loop.closer import KeyframeView, LoopCloser
 
     config = drift_config(sequence, f"loop.consistent_chi2={consistent_chi2}")
@@ -262,6 +261,28 @@ def test_loop_edges_that_agree_with_the_poses_join_the_graph_without_an_optimisa
     # Poses that drifted away from the loop measurements are optimised.
     drifting = closer_steps(drift_sequence, 12.6, torch.tensor([0.004, 0, 0, 0, 0.01, 0], dtype=F64))
     assert any(s.optimisation is not None for s in drifting)
+
+
+def test_verification_rejects_a_correction_larger_than_the_odometry_can_have_drifted():
+    from mipslam.loop.closer import LoopCloser
+    from mipslam.loop.registration import RegistrationResult
+
+    config = load_config(REPO / "configs" / "base.yaml")  # odometry sigma 1 cm + 5 % of the path, 3 sigma
+    closer = LoopCloser(config.loop)
+    # 20 keyframes 2 cm apart along x, no rotation: 0.38 m of path, 3 x (0.01 + 0.05 x 0.38) = 8.7 cm allowed.
+    chain = torch.eye(4, dtype=F64).repeat(20, 1, 1)
+    chain[:, 0, 3] = 0.02 * torch.arange(20, dtype=F64)
+
+    def verified(correction_m: float, correction_deg: float) -> RegistrationResult:
+        return RegistrationResult(torch.eye(4, dtype=F64), torch.eye(6, dtype=F64), 0.5, 0.01, 400, correction_m,
+                                  correction_deg, True, "", 0.0)
+
+    assert closer._within_expected_drift(verified(0.05, 1.0), chain).accepted
+    too_far = closer._within_expected_drift(verified(0.19, 1.0), chain)
+    assert not too_far.accepted and "0.087 m" in too_far.reason and "0.38 m" in too_far.reason
+    assert not closer._within_expected_drift(verified(0.05, 11.6), chain).accepted  # 1.5 deg allowed
+    off = LoopCloser(replace(config.loop, max_drift_sigmas=0.0))
+    assert off._within_expected_drift(verified(0.19, 11.6), chain).accepted
 
 
 # ----------------------------------------------------------------------------- resume

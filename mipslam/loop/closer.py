@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any, Callable
 
 import torch
@@ -298,6 +298,7 @@ class LoopCloser:
                                         T_ij_init, self.registration_options)
             if self.verification_hook is not None:
                 result = self.verification_hook(i, k, result)
+            result = self._within_expected_drift(result, poses[i : k + 1])
             reports.append(CandidateReport(
                 k, keyframe.frame_index, i, other.frame_index, candidate.similarity, candidate.distance_m,
                 candidate.view_angle_deg, result.fitness, _finite_or_none(result.inlier_rmse_m),
@@ -313,6 +314,22 @@ class LoopCloser:
         if not new_edges or self._agrees_with_poses(graph, new_edges):
             return LoopStep(LoopState(graph, descriptors), tuple(reports), None, None, 0.0)
         return self._optimise(graph, descriptors, keyframe, new_edges, tuple(reports))
+
+    def _within_expected_drift(self, result: RegistrationResult, chain_T_wc: torch.Tensor) -> RegistrationResult:
+        """``result`` rejected when its correction of the estimate exceeds ``max_drift_sigmas`` standard deviations
+        of the odometry drift over the keyframe chain ``chain_T_wc`` [k - i + 1, 4, 4] (candidate to query)."""
+        cfg = self.config
+        if not result.accepted or cfg.max_drift_sigmas <= 0:
+            return result
+        path_m, path_rad = path_motion(chain_T_wc)
+        limit_m = cfg.max_drift_sigmas * (cfg.odometry_sigma_m + cfg.odometry_drift_ratio * path_m)
+        limit_deg = cfg.max_drift_sigmas * (cfg.odometry_sigma_deg + cfg.odometry_drift_ratio * math.degrees(path_rad))
+        if result.correction_m <= limit_m and result.correction_deg <= limit_deg:
+            return result
+        reason = (f"registration moved the estimate {result.correction_m:.3f} m / {result.correction_deg:.1f} deg, more "
+                  f"than the {limit_m:.3f} m / {limit_deg:.1f} deg ({cfg.max_drift_sigmas:g} sigma) the odometry can have "
+                  f"drifted over {path_m:.2f} m / {math.degrees(path_rad):.0f} deg of keyframe path")
+        return replace(result, accepted=False, reason=reason)
 
     def _agrees_with_poses(self, graph: PoseGraph, new_edges: list[int]) -> bool:
         """True when every new loop edge's e^T Omega e at the current poses is at most loop.consistent_chi2."""
