@@ -234,9 +234,15 @@ class LoopConfig:
     # nearly every keyframe verifies a loop, and re-optimising the whole graph for each made the pose-graph
     # time per frame grow with the run's length. 0 optimises on every new loop edge.
     consistent_chi2: float = 12.6
+    # ... as do edges whose disagreement is below what tracking resolves (the registration information
+    # claims millimetres; re-optimising for a 1-2 cm residual on every revisit keyframe only churns the map).
+    min_correction_m: float = 0.02
+    min_correction_deg: float = 1.0
 
     def __post_init__(self):
         _check(self.max_drift_sigmas >= 0, "loop.max_drift_sigmas", "must be >= 0 (0 = no check)")
+        _check(self.min_correction_m >= 0 and self.min_correction_deg >= 0, "loop.min_correction_*",
+               "must be >= 0 (0 = no floor)")
         _check(self.consistent_chi2 >= 0, "loop.consistent_chi2", "must be >= 0 (0 = always optimise)")
         _check(self.refine_iterations >= 0, "loop.refine_iterations", "must be >= 0")
         _check(self.min_keyframe_gap >= 1, "loop.min_keyframe_gap", "must be >= 1")

@@ -15,7 +15,8 @@ in the SLAM loop"):
    (:func:`mipslam.loop.registration.register_rgbd_pair`, keyframe i the target); an accepted
    registration becomes a loop edge (i, k);
 5. when this keyframe added loop edges that disagree with the current poses (some ``e^T Omega e``
-   above ``consistent_chi2``; edges that agree join the graph without an optimisation, which keeps a
+   above ``consistent_chi2`` and a residual above ``min_correction_m`` or ``min_correction_deg``;
+   edges that agree join the graph without an optimisation, which keeps a
    revisited route from re-optimising the whole graph on every keyframe), the graph is optimised
    (:func:`optimize_pose_graph` with
    :func:`mipslam.loop.from_config.pgo_options`). The odometry measurements are refreshed from the
@@ -332,17 +333,19 @@ class LoopCloser:
         return replace(result, accepted=False, reason=reason)
 
     def _agrees_with_poses(self, graph: PoseGraph, new_edges: list[int]) -> bool:
-        """True when every new loop edge's e^T Omega e at the current poses is at most loop.consistent_chi2."""
-        limit = self.config.consistent_chi2
-        if limit <= 0:
-            return False
+        """True when every new loop edge already agrees with the current poses: its e^T Omega e is at most
+        ``consistent_chi2``, or its residual is within ``min_correction_m`` and ``min_correction_deg``."""
+        cfg = self.config
         edges = torch.tensor(new_edges, dtype=torch.long)
-        residuals = edge_residuals(graph.poses, graph.edge_nodes[edges], graph.measurements[edges])
+        residuals = edge_residuals(graph.poses, graph.edge_nodes[edges], graph.measurements[edges])  # [E, 6]
         chi2 = mahalanobis_sq(residuals, graph.information[edges])
-        agrees = bool((chi2 <= limit).all())
+        small = (residuals[:, :3].norm(dim=-1) <= cfg.min_correction_m) & (
+            torch.rad2deg(residuals[:, 3:].norm(dim=-1)) <= cfg.min_correction_deg)
+        agrees = bool(((chi2 <= cfg.consistent_chi2) | small).all())
         if agrees:
-            logger.info("keyframe %d: %d new loop edge(s) agree with the poses (max chi2 %.2f <= %.1f); no optimisation",
-                        graph.num_nodes - 1, len(new_edges), float(chi2.max()), limit)
+            logger.info("keyframe %d: %d new loop edge(s) agree with the poses (chi2 <= %.1f or within %.3f m / %.2f deg); "
+                        "no optimisation", graph.num_nodes - 1, len(new_edges), cfg.consistent_chi2, cfg.min_correction_m,
+                        cfg.min_correction_deg)
         return agrees
 
     def _optimise(self, graph: PoseGraph, descriptors: torch.Tensor, keyframe: KeyframeView, new_edges: list[int],
