@@ -8,6 +8,7 @@ import re
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -547,3 +548,19 @@ def test_stale_torch_build_lock_of_a_killed_build_is_removed(tmp_path):
         assert held.returncode == 3  # another process cannot build while this one does
     free = subprocess.run([sys.executable, "-c", probe, str(tmp_path / "mipslam-build.flock")], check=False)
     assert free.returncode == 0
+
+
+def test_the_extension_compiles_a_copy_of_its_sources_that_every_checkout_shares(tmp_path):
+    # ninja names sources by path: compiling the checkout's files made two checkouts rebuild each other.
+    folder = cpu_backend._copy_sources(tmp_path / "src")
+    names = cpu_backend._SOURCES + cpu_backend._HEADERS
+    for name in names:
+        assert (folder / name).read_bytes() == (cpu_backend._SOURCE_DIR / name).read_bytes()
+    stamps = {name: (folder / name).stat().st_mtime_ns for name in names}
+    time.sleep(0.01)
+    cpu_backend._copy_sources(tmp_path / "src")  # same content: nothing rewritten, ninja sees no change
+    assert {name: (folder / name).stat().st_mtime_ns for name in names} == stamps
+    (folder / names[0]).write_text("stale")
+    cpu_backend._copy_sources(tmp_path / "src")
+    assert (folder / names[0]).read_bytes() == (cpu_backend._SOURCE_DIR / names[0]).read_bytes()
+    assert not list(folder.glob(".*.partial"))

@@ -15,7 +15,8 @@ sample, EAA with its rows, exact Gauss-Legendre) and front-to-back compositing, 
 
 Build: compiled from source on first use with ``torch.utils.cpp_extension.load`` (ninja), cached under
 ``$MIPSLAM_CACHE_DIR`` or ``$XDG_CACHE_HOME/mipslam`` or ``~/.cache/mipslam``, in a folder keyed by a hash
-of the sources, the compiler flags, the compiler and the torch version. ``-mavx2 -mfma`` are added only
+of the sources, the compiler flags, the compiler and the torch version; the sources are compiled from a copy
+in that folder, so every checkout of the same code shares one build. ``-mavx2 -mfma`` are added only
 when this CPU has both (checked at run time before compiling); otherwise the x86-64 baseline build is
 used, so the cached binary never needs more than the CPU that built it. If the build fails (no compiler,
 no ninja, ...) one warning is logged and :func:`is_available` is False: ``backend="auto"`` then uses the
@@ -154,9 +155,30 @@ def _build():
     build_dir.mkdir(parents=True, exist_ok=True)
     log.info("loading the mipslam cpu rasterizer from %s (compiled on first use, about 30-60 s)", build_dir)
     with _exclusive_build(build_dir):
-        return cpp_extension.load(name=name, sources=[str(_SOURCE_DIR / s) for s in _SOURCES],
+        sources = _copy_sources(build_dir / "src")
+        return cpp_extension.load(name=name, sources=[str(sources / s) for s in _SOURCES],
                                   extra_cflags=cflags, extra_ldflags=ldflags, build_directory=str(build_dir),
                                   verbose=False)
+
+
+def _copy_sources(folder: Path) -> Path:
+    """Copy the sources and headers into ``folder`` (inside the content-keyed build folder) and return it.
+
+    ninja's build file names the sources by path. Compiling the checkout's own files made two checkouts of
+    the same commit (a CI clone and a working tree, a frozen copy for a benchmark) rewrite it in turn and
+    rebuild each other's extension. The copy has the same path for every checkout. A file is rewritten only
+    when its content differs, so its modification time, which ninja compares, stays put.
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in _SOURCES + _HEADERS:
+        data = (_SOURCE_DIR / name).read_bytes()
+        target = folder / name
+        if target.exists() and target.read_bytes() == data:
+            continue
+        partial = folder / f".{name}.partial"
+        partial.write_bytes(data)
+        os.replace(partial, target)
+    return folder
 
 
 @contextlib.contextmanager
