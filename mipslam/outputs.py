@@ -93,9 +93,9 @@ def loop_summary(state: SLAMState, config: Config) -> dict:
             "candidates": "query/candidate keyframe and frame, descriptor similarity, distance and view angle in the "
                           "current estimate, verification fitness and inlier RMSE (m), how far registration moved the "
                           "initial guess, accepted (became a loop edge) or the reason for the rejection",
-            "optimisations": "per keyframe that added loop edges disagreeing with the current poses (loop edges "
-                             "within loop.consistent_chi2 join the graph without one): graph size, cost before/after (robust, on the edges "
-                             "kept), LM iterations, pruned loop edges [i, j], final weight and chi2 of its new and pruned "
+            "optimisations": "per keyframe that added loop edges disagreeing with the current poses (edges within "
+                             "loop.consistent_chi2 or loop.min_correction_m/_deg join the graph without one): graph "
+                             "size, cost before/after (robust, on the edges kept), LM iterations, pruned loop edges [i, j], final weight and chi2 of its new and pruned "
                              "loop edges, whether the correction was applied and why, largest keyframe correction, map "
                              "PSNR at the loop's keyframes before the correction, with only the poses corrected, after "
                              "the Gaussians moved with their anchors and after the refinement steps (dB), seconds",

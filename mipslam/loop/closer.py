@@ -209,6 +209,13 @@ def path_motion(T_wc: torch.Tensor) -> tuple[float, float]:
     return float(steps[:, :3, 3].norm(dim=-1).sum()), float(rotation_angle(steps[:, :3, :3]).sum())
 
 
+def odometry_sigmas(path_m: float, path_rad: float, sigma_m: float, sigma_deg: float,
+                    drift_ratio: float) -> tuple[float, float]:
+    """Standard deviations (metres, radians) of the odometry's drift over a path of ``path_m`` / ``path_rad``:
+    ``sigma_m + drift_ratio * path_m`` and ``radians(sigma_deg) + drift_ratio * path_rad``."""
+    return sigma_m + drift_ratio * path_m, math.radians(sigma_deg) + drift_ratio * path_rad
+
+
 def odometry_information(path_m: float, path_rad: float, quality: float, sigma_m: float, sigma_deg: float,
                          drift_ratio: float) -> torch.Tensor:
     """Information of an odometry edge in the order [rho, phi].
@@ -222,8 +229,7 @@ def odometry_information(path_m: float, path_rad: float, quality: float, sigma_m
     that disagrees with it by more than ~5-7 of the chain's standard deviations is taken for an
     outlier by the robust kernel (docs/pgo.md).
     """
-    sigma_t = sigma_m + drift_ratio * path_m
-    sigma_r = math.radians(sigma_deg) + drift_ratio * path_rad
+    sigma_t, sigma_r = odometry_sigmas(path_m, path_rad, sigma_m, sigma_deg, drift_ratio)
     diagonal = torch.tensor([sigma_t**-2] * 3 + [sigma_r**-2] * 3, dtype=torch.float64)
     return torch.diag(diagonal) * quality
 
@@ -323,8 +329,9 @@ class LoopCloser:
         if not result.accepted or cfg.max_drift_sigmas <= 0:
             return result
         path_m, path_rad = path_motion(chain_T_wc)
-        limit_m = cfg.max_drift_sigmas * (cfg.odometry_sigma_m + cfg.odometry_drift_ratio * path_m)
-        limit_deg = cfg.max_drift_sigmas * (cfg.odometry_sigma_deg + cfg.odometry_drift_ratio * math.degrees(path_rad))
+        sigma_m, sigma_rad = odometry_sigmas(path_m, path_rad, cfg.odometry_sigma_m, cfg.odometry_sigma_deg,
+                                             cfg.odometry_drift_ratio)
+        limit_m, limit_deg = cfg.max_drift_sigmas * sigma_m, cfg.max_drift_sigmas * math.degrees(sigma_rad)
         if result.correction_m <= limit_m and result.correction_deg <= limit_deg:
             return result
         reason = (f"registration moved the estimate {result.correction_m:.3f} m / {result.correction_deg:.1f} deg, more "
