@@ -183,6 +183,11 @@ class MappingConfig:
     # A new Gaussian's std-dev in units of its cell (stride pixels at its depth). 1 blurs neighbours into each
     # other (a 20-iteration map keeps that blur and biases tracking); below about 0.5 the splats leave gaps.
     initial_scale_factor: float = 1.0
+    # A new Gaussian is not added when an existing centre lies within this many of its std-devs: a revisit
+    # that misses the mapped surface by a little re-fits it instead of layering a copy over it. 0 = off.
+    # The fast and balanced presets use 2 (docs/robustness.md); at 40x30 a radius of 2 std-devs (4 px)
+    # also blocks real surfaces and costs tracking accuracy, so the base value is 1.
+    add_min_distance_ratio: float = 1.0
     initial_opacity: float = 0.5
     prune_opacity: float = 0.005
     prune_max_sigma_px: float = 50.0  # std-dev larger than this many pixels (seen from the keyframe) is absurd
@@ -196,6 +201,7 @@ class MappingConfig:
         _check(self.densify_pixel_stride >= 1, "mapping.densify_pixel_stride", "must be >= 1")
         _check(0 < self.initial_opacity < 1, "mapping.initial_opacity", "must be in (0, 1)")
         _check(self.prune_max_sigma_px > 0, "mapping.prune_max_sigma_px", "must be positive")
+        _check(self.add_min_distance_ratio >= 0, "mapping.add_min_distance_ratio", "must be >= 0 (0 = off)")
         _check(self.initial_scale_factor > 0, "mapping.initial_scale_factor", "must be positive")
 
 

@@ -5,7 +5,8 @@ On each keyframe (DESIGN.md "Losses" and "Model only what a scene requires"):
 1. densify: render the map at the new keyframe; new Gaussians go only where the map does not
    explain it (rendered opacity below ``add_opacity_threshold`` or the map's surface far behind the
    measurement), one per selected pixel (every ``densify_pixel_stride``-th), sized from depth and the
-   pixel footprint, within the ``max_gaussians`` cap;
+   pixel footprint, within the ``max_gaussians`` cap, and not within ``add_min_distance_ratio`` of its
+   std-dev from an existing centre;
 2. optimise the map (and the window's keyframe poses, except the first keyframe, which fixes the
    gauge) for ``iterations`` Adam steps; step ``i`` uses the newest keyframe on even steps and a
    keyframe drawn with the run's generator from the others on odd steps. Loss per view:
@@ -28,6 +29,7 @@ from mipslam.gaussians import (
     cap_pixel_mask,
     densify_pixel_mask,
     distances_to_camera,
+    far_from_existing,
     gaussians_from_rgbd,
     prune_mask,
 )
@@ -99,6 +101,9 @@ class Mapper:
                                   view.T_wc.to(gmap.dtype), mask, initial_opacity=cfg.initial_opacity,
                                   anchor_keyframe=view.keyframe_id, created_frame=frame_index, pixel_stride=stride,
                                   scale_factor=cfg.initial_scale_factor)
+        if cfg.add_min_distance_ratio > 0 and len(gmap) > 0:
+            new = new.subset(far_from_existing(new.means, new.log_scales[:, 0].exp(), gmap.means.detach(),
+                                               cfg.add_min_distance_ratio))
         gmap.add(new, optimizer)
         return len(new)
 

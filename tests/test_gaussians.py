@@ -13,6 +13,7 @@ from mipslam.gaussians import (
     cap_pixel_mask,
     densify_pixel_mask,
     distances_to_camera,
+    far_from_existing,
     gaussians_from_rgbd,
     prune_mask,
     quat_multiply_wxyz,
@@ -303,3 +304,16 @@ def test_cap_count_mask_removes_least_opaque_newest_first():
     remove = cap_count_mask(opacities, 4)
     assert remove.tolist() == [False, False, False, True, False, True]
     assert not cap_count_mask(opacities, 6).any() and cap_count_mask(opacities, 0).all()
+
+
+def test_far_from_existing_keeps_only_gaussians_with_no_centre_within_ratio_sigma():
+    existing = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    new = torch.tensor([[0.05, 0.0, 0.0], [0.5, 0.0, 0.0], [1.0, 0.0, 0.19], [3.0, 3.0, 3.0]])
+    sigmas = torch.tensor([0.1, 0.1, 0.1, 0.1])
+    # Within 2 sigma = 0.2 m: the first and third are near an existing centre.
+    assert far_from_existing(new, sigmas, existing, 2.0).tolist() == [False, True, False, True]
+    # Per-Gaussian radius: a 1 m sigma reaches the centre 0.5 m away.
+    assert far_from_existing(new[1:2], torch.tensor([1.0]), existing, 2.0).tolist() == [False]
+    assert far_from_existing(new, sigmas, existing, 0.0).all()  # off
+    assert far_from_existing(new, sigmas, existing[:0], 2.0).all()  # empty map
+    assert far_from_existing(new[:0], sigmas[:0], existing, 2.0).shape == (0,)

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -142,6 +143,25 @@ def test_mapping_reduces_the_loss_on_a_fixed_view(tiny_sequence):
     _, _, gmap, first, last = _map_of_first_frame(tiny_sequence, 40)
     assert math.isfinite(first) and last < 0.7 * first, (first, last)
     assert len(gmap) > 0
+
+
+def test_densifying_a_view_the_map_already_holds_adds_no_copies(tiny_sequence):
+    config, sequence, gmap, _, _ = _map_of_first_frame(tiny_sequence, 40)
+    frame = sequence[0]
+    # Make the mapped surface nearly transparent: every pixel now fails the opacity test, but every
+    # Gaussian that would be added lands on an existing centre (mapping raises their opacity instead).
+    with torch.no_grad():
+        gmap.opacity_logits.fill_(-3.0)
+    view = MappingView(0, frame.color, frame.depth, sequence.gt_T_wc[0], torch.zeros(2), frame.intrinsics,
+                       optimize_pose=False)
+    optimizer = GaussianOptimizer.from_config(gmap, config.mapping)
+    before = len(gmap)
+    with_check = Mapper(config.mapping, config.render).densify(gmap, optimizer, view, frame_index=1)
+    gmap.remove(torch.arange(len(gmap)) >= before, optimizer)
+    off = replace(config.mapping, add_min_distance_ratio=0.0)
+    without_check = Mapper(off, config.render).densify(gmap, optimizer, view, frame_index=1)
+    assert without_check > 0.5 * before  # a second layer over the first
+    assert with_check <= 0.05 * without_check, (with_check, without_check)
 
 
 def test_tracking_recovers_a_known_pose_perturbation(tmp_path):

@@ -15,11 +15,12 @@ from mipslam.gaussians.policy import (
     cap_pixel_mask,
     densify_pixel_mask,
     distances_to_camera,
+    far_from_existing,
     prune_mask,
 )
 
 __all__ = [
     "PARAMETER_NAMES", "BUFFER_NAMES", "ActivatedGaussians", "GaussianParameters", "GaussianMap",
-    "GaussianOptimizer", "gaussians_from_rgbd", "color_logit", "quat_multiply_wxyz",
+    "GaussianOptimizer", "gaussians_from_rgbd", "far_from_existing", "color_logit", "quat_multiply_wxyz",
     "densify_pixel_mask", "cap_pixel_mask", "prune_mask", "cap_count_mask", "distances_to_camera",
 ]

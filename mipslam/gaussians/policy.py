@@ -5,6 +5,9 @@
   error above ``ratio`` times the median error of the covered pixels: something new in front of
   what is mapped; SplaTAM's rule). Pixels where the map is in front of the measurement are not
   densified: a Gaussian behind mapped geometry would be hidden; pruning deals with such floaters.
+- :func:`far_from_existing`: of the Gaussians about to be added, those with no existing centre within
+  ``ratio`` of their own std-dev: a revisit that misses the old surface by a little re-fits it
+  instead of layering a copy over it.
 - :func:`cap_pixel_mask`: at most ``budget`` of those pixels, evenly spread over the image.
 - :func:`prune_mask`: Gaussians with negligible opacity, non-finite parameters, or an absurd
   size: a std-dev larger than ``max_sigma_px`` pixels when seen from a reference camera
@@ -13,7 +16,9 @@
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 
 def densify_pixel_mask(
@@ -106,3 +111,23 @@ def cap_count_mask(opacities: torch.Tensor, max_count: int) -> torch.Tensor:
     order = count - 1 - torch.argsort(keys, stable=True)
     remove[order[:excess]] = True
     return remove
+
+
+def far_from_existing(
+    new_means: torch.Tensor,  # [M, 3] world metres
+    new_sigmas: torch.Tensor,  # [M] metres, std-dev of each new Gaussian
+    existing_means: torch.Tensor,  # [N, 3] world metres
+    ratio: float,
+) -> torch.Tensor:  # [M] bool
+    """True where no existing centre lies within ``ratio * new_sigmas`` of the new centre (a k-d tree query).
+
+    ``ratio <= 0`` or an empty map keeps every new Gaussian.
+    """
+    keep = torch.ones(new_means.shape[0], dtype=torch.bool, device=new_means.device)
+    if ratio <= 0 or existing_means.shape[0] == 0 or new_means.shape[0] == 0:
+        return keep
+    radius = (ratio * new_sigmas).detach().double().cpu().numpy()
+    tree = cKDTree(existing_means.detach().double().cpu().numpy())
+    distance, _ = tree.query(new_means.detach().double().cpu().numpy(), k=1, distance_upper_bound=float(radius.max()))
+    near = np.asarray(distance) <= radius  # a miss is inf
+    return torch.from_numpy(~near).to(new_means.device)
