@@ -262,6 +262,7 @@ def main(argv: list[str] | None = None) -> int:
     laps = args.laps or default_laps(args.frames)
     if args.summarise:
         return summarise_progress(args.summarise, args.frames, laps, args.rows)
+    commit = git_commit()  # now: a run can outlive the commit it started from
     work = args.keep or Path(tempfile.mkdtemp(prefix="mipslam_long_run_"))
     try:
         sequence, run_dir = work / "sequence", work / "run"
@@ -285,7 +286,7 @@ def main(argv: list[str] | None = None) -> int:
         rows = curve_rows(probe, args.rows)
 
         print(f"long run: {args.frames} frames ({laps} laps) at {args.width}x{args.height}, preset {args.preset}, "
-              f"{args.threads} thread(s), commit {git_commit()}")
+              f"{args.threads} thread(s), commit {commit}")
         print(f"generation {generation_s:.0f} s, run {run_s:.0f} s ({args.frames / run_s:.2f} frames/s), "
               f"{summary.keyframes} keyframes, {summary.gaussians} Gaussians, {summary.flagged} frames flagged, "
               f"ATE RMSE {metrics['ate']['rmse'] * 100:.2f} cm; RSS before the run {rss_start:.0f} MiB")
@@ -295,7 +296,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.json:
             args.json.write_text(json.dumps({
                 "frames": args.frames, "laps": laps, "width": args.width, "height": args.height,
-                "preset": args.preset, "threads": args.threads, "overrides": args.overrides, "commit": git_commit(),
+                "preset": args.preset, "threads": args.threads, "overrides": args.overrides, "commit": commit,
                 "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__},
                 "generation_s": generation_s, "run_s": run_s, "keyframes": summary.keyframes,
                 "gaussians": summary.gaussians, "flagged": summary.flagged, "ate_rmse_m": metrics["ate"]["rmse"],
