@@ -22,6 +22,7 @@ import torch
 from tqdm import tqdm
 
 from mipslam.checkpoint import load_latest_checkpoint, save_checkpoint
+from mipslam.heap import release_free_heap
 from mipslam.config import Config, config_to_dict, config_to_yaml
 from mipslam.datasets import RGBDSequence, make_sequence
 from mipslam.errors import CheckpointError, ConfigError, DatasetError, MipslamError
@@ -438,6 +439,8 @@ def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evalu
                     log.warning("frame %d: tracking failed (%s); kept the motion-model pose", index, record.status)
                 if config.run.checkpoint_every and state.next_frame % config.run.checkpoint_every == 0:
                     _checkpoint(folder, state, config)
+                if config.run.release_memory_every and state.next_frame % config.run.release_memory_every == 0:
+                    release_free_heap()  # fragmentation, not live data, would otherwise grow RSS
                 bar.set_postfix(gaussians=len(state.gaussian_map), loss=f"{record.tracking_loss:.4f}", refresh=False)
                 progress.frame_done(state, record, bar.disable)
                 if stop_requested:

@@ -1,0 +1,65 @@
+"""Returning freed heap memory to the OS (mipslam.heap), and the pipeline's use of it."""
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+from pathlib import Path
+
+import pytest
+
+import mipslam.pipeline as pipeline
+from mipslam.config import load_config
+from mipslam.errors import ConfigError
+from mipslam.heap import heap_trim_available, release_free_heap
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def resident_bytes() -> int:
+    with open("/proc/self/statm") as stream:
+        return int(stream.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+@pytest.mark.skipif(not heap_trim_available() or not Path("/proc/self/statm").exists(),
+                    reason="needs glibc's malloc_trim and /proc (Linux)")
+def test_release_returns_fragmented_free_blocks_to_the_os():
+    libc = ctypes.CDLL(ctypes.util.find_library("c"))
+    libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
+    libc.free.argtypes = [ctypes.c_void_p]
+    block = 64 * 1024  # below glibc's mmap threshold: these live in the arena
+    blocks = [libc.malloc(block) for _ in range(1024)]  # 64 MiB
+    for pointer in blocks:
+        ctypes.memset(pointer, 1, block)  # touch every page
+    for pointer in blocks[:-1]:  # the last block pins the top of the heap: free space cannot shrink by itself
+        libc.free(pointer)
+    before = resident_bytes()
+    assert release_free_heap() is True
+    after = resident_bytes()
+    libc.free(blocks[-1])
+    assert before - after > 32 * 2**20, f"RSS {before / 2**20:.0f} -> {after / 2**20:.0f} MiB"
+
+
+def test_release_is_safe_to_call_repeatedly():
+    for _ in range(3):
+        assert isinstance(release_free_heap(), bool)
+
+
+def test_pipeline_releases_memory_every_n_frames(monkeypatch, tmp_path):
+    import data_synth
+
+    sequence = tmp_path / "seq"
+    data_synth.generate(sequence, layout="replica", trajectory="loop", width=24, height=18, frames=5, seed=0,
+                        supersample=1)
+    calls = []
+    monkeypatch.setattr(pipeline, "release_free_heap", lambda: calls.append(1) or True)
+    config = load_config(REPO / "configs" / "synthetic.yaml", overrides=[
+        f"dataset.path={sequence}", "run.release_memory_every=2", "run.threads=1", "tracking.iterations=3",
+        "mapping.iterations=2", "mapping.first_frame_iterations=3", "run.evaluate_at_end=false"])
+    pipeline.run_slam(config, tmp_path / "run")
+    assert len(calls) == 2  # after frames 2 and 4 of 5
+
+
+def test_release_memory_every_must_not_be_negative():
+    with pytest.raises(ConfigError, match="run.release_memory_every"):
+        load_config(REPO / "configs" / "synthetic.yaml", overrides=["run.release_memory_every=-1"])
