@@ -319,6 +319,25 @@ def test_resume_across_a_loop_closure_equals_the_uninterrupted_run(drift_sequenc
     assert len(decisions(loops(full))) >= 2
 
 
+def test_resume_is_bit_identical_where_small_splats_amplify_round_off(drift_sequence, tmp_path):
+    # With 0.7-cell splats at 40x30 a last-bit difference at the first loop closure grew to 3.6 mm in
+    # the map: Open3D's multi-threaded reductions made registration differ between runs. Open3D now
+    # runs on one thread, and a resumed run equals the uninterrupted one exactly. The race showed in
+    # 2 of 2 runs with a checkpoint every frame but does not show every time, so the setting is pinned too.
+    from mipslam.loop.registration import _open3d
+
+    assert _open3d().utility.get_max_threads() == 1
+    small = "mapping.initial_scale_factor=0.7"
+    drift_run(drift_sequence, tmp_path / "full", small)
+    drift_run(drift_sequence, tmp_path / "split", small, "dataset.max_frames=30")
+    drift_run(drift_sequence, tmp_path / "split", small, resume=True)
+    assert any(o["applied"] for o in loops(tmp_path / "full")["optimisations"] if o["query_frame"] > 30)
+    np.testing.assert_array_equal(read_tum_trajectory(tmp_path / "split" / "traj_est.txt").T_wc,
+                                  read_tum_trajectory(tmp_path / "full" / "traj_est.txt").T_wc)
+    assert torch.equal(read_map_ply(tmp_path / "split" / "map.ply").means,
+                       read_map_ply(tmp_path / "full" / "map.ply").means)
+
+
 # ----------------------------------------------------------------------------- verification
 
 
