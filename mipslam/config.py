@@ -46,12 +46,18 @@ class RunConfig:
     # frames between returns of freed heap memory to the OS (glibc malloc_trim; 0 = never). Without it
     # fragmentation grows RSS by about 3 MiB per 100 frames on long runs (docs/robustness.md).
     release_memory_every: int = 50
+    # allocations of at least this many KiB come from mmap and go back to the OS when freed (glibc
+    # mallopt M_MMAP_THRESHOLD, fixed); 0 keeps glibc's dynamic threshold. Stops heap fragmentation
+    # from growing RSS on long runs (docs/robustness.md, failure 10).
+    mmap_threshold_kib: int = 64
 
     def __post_init__(self):
         _check(self.threads >= 0, "run.threads", "must be >= 0 (0 = torch default)")
         _check(self.checkpoint_every >= 0, "run.checkpoint_every", "must be >= 0")
         _check(self.keep_checkpoints >= 1, "run.keep_checkpoints", "must be >= 1")
         _check(self.release_memory_every >= 0, "run.release_memory_every", "must be >= 0 (0 = never)")
+        _check(0 <= self.mmap_threshold_kib <= 32768, "run.mmap_threshold_kib",
+               "must be in [0, 32768] KiB (0 = the C library's default)")
 
 
 @dataclass(frozen=True)

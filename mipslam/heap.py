@@ -6,7 +6,12 @@ process's resident memory creeps up although the live data does not: on the 80x6
 the arenas' free space grew from 7 to 15 MiB over 300 frames while the allocated bytes grew by
 1 MiB (docs/robustness.md, "Long runs"). ``malloc_trim(0)`` returns every free page of every arena.
 
-On a C library without ``malloc_trim`` (macOS, musl, Windows) :func:`release_free_heap` does nothing.
+:func:`set_mmap_threshold` attacks the cause: glibc serves a block from ``mmap`` (returned to the OS
+on ``free``) only above a threshold that it raises after every large free, up to 32 MiB, so a run's
+tensors soon all come from the heap and fragment it. A fixed threshold keeps them out of the heap:
+at 64 KiB the heap stopped growing over the second lap of that run (docs/robustness.md, failure 10).
+
+On a C library without ``malloc_trim``/``mallopt`` (macOS, musl, Windows) both do nothing.
 """
 from __future__ import annotations
 
@@ -31,6 +36,33 @@ def _malloc_trim():
     function.argtypes = [ctypes.c_size_t]
     function.restype = ctypes.c_int
     return function
+
+
+_M_MMAP_THRESHOLD = -3  # glibc's mallopt parameter number (malloc.h)
+
+
+@lru_cache(maxsize=1)
+def _mallopt():
+    """The C library's ``int mallopt(int param, int value)``, or None where there is none."""
+    name = ctypes.util.find_library("c")
+    if name is None:
+        return None
+    try:
+        function = ctypes.CDLL(name).mallopt
+    except (OSError, AttributeError):
+        return None
+    function.argtypes = [ctypes.c_int, ctypes.c_int]
+    function.restype = ctypes.c_int
+    return function
+
+
+def set_mmap_threshold(threshold_bytes: int) -> bool:
+    """Serve every allocation of at least ``threshold_bytes`` from ``mmap``, with the threshold fixed
+    (glibc's dynamic raising switched off); True if the C library took it. Affects the whole process."""
+    if threshold_bytes <= 0:
+        raise ValueError(f"mmap threshold must be positive, got {threshold_bytes}")
+    mallopt = _mallopt()
+    return bool(mallopt(_M_MMAP_THRESHOLD, int(threshold_bytes))) if mallopt is not None else False
 
 
 def heap_trim_available() -> bool:

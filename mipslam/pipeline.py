@@ -22,7 +22,7 @@ import torch
 from tqdm import tqdm
 
 from mipslam.checkpoint import load_latest_checkpoint, save_checkpoint
-from mipslam.heap import release_free_heap
+from mipslam.heap import release_free_heap, set_mmap_threshold
 from mipslam.config import Config, config_to_dict, config_to_yaml
 from mipslam.datasets import RGBDSequence, make_sequence
 from mipslam.errors import CheckpointError, ConfigError, DatasetError, MipslamError
@@ -420,6 +420,8 @@ def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evalu
     device = resolve_device(config.run.device)
     if config.run.threads:
         torch.set_num_threads(config.run.threads)
+    if config.run.mmap_threshold_kib:
+        set_mmap_threshold(config.run.mmap_threshold_kib * 1024)
     state = _restore(folder, config, device) if resume else SLAMState.initial(config.mapping, config.run.seed, device)
     write_text_atomic(folder.config_yaml, config_to_yaml(config))
     stages = Stages.build(config, sequence, device, hooks)

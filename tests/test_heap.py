@@ -11,7 +11,7 @@ import pytest
 import mipslam.pipeline as pipeline
 from mipslam.config import load_config
 from mipslam.errors import ConfigError
-from mipslam.heap import heap_trim_available, release_free_heap
+from mipslam.heap import heap_trim_available, release_free_heap, set_mmap_threshold
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -40,6 +40,46 @@ def test_release_returns_fragmented_free_blocks_to_the_os():
     assert before - after > 32 * 2**20, f"RSS {before / 2**20:.0f} -> {after / 2**20:.0f} MiB"
 
 
+MMAP_PROBE = """
+import ctypes, ctypes.util, sys
+from mipslam.heap import set_mmap_threshold
+libc = ctypes.CDLL(ctypes.util.find_library("c"))
+libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
+libc.free.argtypes = [ctypes.c_void_p]
+class Info(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in
+                "arena ordblks smblks hblks hblkhd usmblks fsmblks uordblks fordblks keepcost".split()]
+libc.mallinfo2.restype = Info
+if sys.argv[1] == "fixed":
+    assert set_mmap_threshold(64 * 1024)
+libc.free(libc.malloc(4 << 20))  # glibc's dynamic rule now raises its threshold to 4 MiB
+before = libc.mallinfo2().hblkhd
+block = libc.malloc(256 << 10)
+print(libc.mallinfo2().hblkhd - before)
+libc.free(block)
+"""
+
+
+@pytest.mark.skipif(not hasattr(ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6"), "mallinfo2"),
+                    reason="needs glibc >= 2.33 (mallinfo2) to observe where a block comes from")
+def test_fixed_mmap_threshold_keeps_large_blocks_out_of_the_heap_after_a_large_free():
+    import subprocess
+    import sys
+
+    def mmapped_bytes(mode: str) -> int:  # a fresh process: mallopt changes the whole process
+        done = subprocess.run([sys.executable, "-c", MMAP_PROBE, mode], capture_output=True, text=True, check=True,
+                              cwd=REPO)
+        return int(done.stdout.strip())
+
+    assert mmapped_bytes("dynamic") == 0  # the 256 KiB block went into the heap, where it can fragment
+    assert mmapped_bytes("fixed") >= 256 << 10  # mapped, so free() gives it back to the OS
+
+
+def test_set_mmap_threshold_rejects_a_non_positive_value():
+    with pytest.raises(ValueError, match="positive"):
+        set_mmap_threshold(0)
+
+
 def test_release_is_safe_to_call_repeatedly():
     for _ in range(3):
         assert isinstance(release_free_heap(), bool)
@@ -63,3 +103,9 @@ def test_pipeline_releases_memory_every_n_frames(monkeypatch, tmp_path):
 def test_release_memory_every_must_not_be_negative():
     with pytest.raises(ConfigError, match="run.release_memory_every"):
         load_config(REPO / "configs" / "synthetic.yaml", overrides=["run.release_memory_every=-1"])
+
+
+@pytest.mark.parametrize("value", ["-1", "65536"])
+def test_mmap_threshold_out_of_range_is_a_config_error(value):
+    with pytest.raises(ConfigError, match="run.mmap_threshold_kib"):
+        load_config(REPO / "configs" / "synthetic.yaml", overrides=[f"run.mmap_threshold_kib={value}"])
