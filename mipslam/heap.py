@@ -17,43 +17,36 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
-import logging
 from functools import lru_cache
 
-log = logging.getLogger(__name__)
 
 
-@lru_cache(maxsize=1)
-def _malloc_trim():
-    """The C library's ``int malloc_trim(size_t pad)``, or None where there is none."""
-    name = ctypes.util.find_library("c")
-    if name is None:
+@lru_cache(maxsize=None)
+def _libc_function(name: str, argtypes: tuple, restype):
+    """A function of the process's C library, or None where the library has none of that name."""
+    library = ctypes.util.find_library("c")
+    if library is None:
         return None
     try:
-        function = ctypes.CDLL(name).malloc_trim
+        function = getattr(ctypes.CDLL(library), name)
     except (OSError, AttributeError):
         return None
-    function.argtypes = [ctypes.c_size_t]
-    function.restype = ctypes.c_int
+    function.argtypes = list(argtypes)
+    function.restype = restype
     return function
+
+
+def _malloc_trim():
+    """``int malloc_trim(size_t pad)``, or None."""
+    return _libc_function("malloc_trim", (ctypes.c_size_t,), ctypes.c_int)
 
 
 _M_MMAP_THRESHOLD = -3  # glibc's mallopt parameter number (malloc.h)
 
 
-@lru_cache(maxsize=1)
 def _mallopt():
-    """The C library's ``int mallopt(int param, int value)``, or None where there is none."""
-    name = ctypes.util.find_library("c")
-    if name is None:
-        return None
-    try:
-        function = ctypes.CDLL(name).mallopt
-    except (OSError, AttributeError):
-        return None
-    function.argtypes = [ctypes.c_int, ctypes.c_int]
-    function.restype = ctypes.c_int
-    return function
+    """``int mallopt(int param, int value)``, or None."""
+    return _libc_function("mallopt", (ctypes.c_int, ctypes.c_int), ctypes.c_int)
 
 
 def set_mmap_threshold(threshold_bytes: int) -> bool:
