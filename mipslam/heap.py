@@ -20,7 +20,6 @@ import ctypes.util
 from functools import lru_cache
 
 
-
 @lru_cache(maxsize=None)
 def _libc_function(name: str, argtypes: tuple, restype):
     """A function of the process's C library, or None where the library has none of that name."""
