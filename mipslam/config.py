@@ -47,9 +47,9 @@ class RunConfig:
     # fragmentation grows RSS by about 3 MiB per 100 frames on long runs (docs/robustness.md).
     release_memory_every: int = 50
     # allocations of at least this many KiB come from mmap and go back to the OS when freed (glibc
-    # mallopt M_MMAP_THRESHOLD, fixed); 0 keeps glibc's dynamic threshold. Stops heap fragmentation
-    # from growing RSS on long runs (docs/robustness.md, failure 10).
-    mmap_threshold_kib: int = 64
+    # mallopt M_MMAP_THRESHOLD, fixed); 0 keeps glibc's dynamic threshold. 64 halves the RSS creep of
+    # a 2000-frame run (+31 -> +17 MiB) but costs 11 % frames/s (docs/robustness.md, failure 10).
+    mmap_threshold_kib: int = 0
 
     def __post_init__(self):
         _check(self.threads >= 0, "run.threads", "must be >= 0 (0 = torch default)")
