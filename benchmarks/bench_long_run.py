@@ -20,7 +20,10 @@ Checks (printed with PASS/FAIL; the exit code is 1 if one fails):
   the first lap; the middle of the run for a single lap) is at most ``max(10 %, 64 MiB)``;
 * no growth of per-frame time: median CPU time per frame of the last quarter <= 1.5 x that of the
   first quarter (frame 0, which maps the first keyframe from scratch, left out; CPU rather than
-  wall time, which other processes on shared cores inflate);
+  wall time, which other processes on shared cores inflate), and the same for the mean over the
+  frames after the room is covered (the mean catches work done on some frames only, such as
+  pose-graph optimisation, which only revisits start). With 2 laps the quarters lie in different
+  parts of the room, whose costs differ; the check is fair from about 4 laps (1000 frames) on;
 * Gaussian count plateaus: the last quarter of the run adds at most 5 % to the count;
 * bounded checkpoint files: never more than ``run.keep_checkpoints + 1`` (+1: the moment between
   writing a new checkpoint and deleting the oldest).
@@ -161,11 +164,17 @@ def checks(probe: FrameProbe, covered: int, keep: int) -> list[tuple[str, bool, 
     times = [t for t in times if t == t]
     wall = [t for t in probe.periods()[1:] if t == t]
     first, last = statistics.median(quarter(times, 0)), statistics.median(quarter(times, 3))
+    # the mean too, since work done on some frames only (pose-graph optimisation) does not move the
+    # median; over the revisits only (from the frame the room is covered), where loop closure runs
+    revisits = times[covered:]
+    first_mean, last_mean = statistics.fmean(quarter(revisits, 0)), statistics.fmean(quarter(revisits, 3))
     kind = "CPU" if len(cpu) > 4 else "wall"
-    out.append(("no growth of per-frame time", last <= TIME_GROWTH_RATIO * first,
+    out.append(("no growth of per-frame time",
+                last <= TIME_GROWTH_RATIO * first and last_mean <= TIME_GROWTH_RATIO * first_mean,
                 f"median {first * 1000:.0f} {kind} ms/frame in the first quarter, {last * 1000:.0f} ms in the last "
-                f"(ratio {last / first:.2f}, allowed {TIME_GROWTH_RATIO}); wall: {statistics.median(quarter(wall, 0)) * 1000:.0f}"
-                f" -> {statistics.median(quarter(wall, 3)) * 1000:.0f} ms"))
+                f"(ratio {last / first:.2f}), mean over the revisits {first_mean * 1000:.0f} -> {last_mean * 1000:.0f} ms (ratio "
+                f"{last_mean / first_mean:.2f}); allowed {TIME_GROWTH_RATIO} for each; wall median: "
+                f"{statistics.median(quarter(wall, 0)) * 1000:.0f} -> {statistics.median(quarter(wall, 3)) * 1000:.0f} ms"))
     start = probe.gaussians[3 * len(probe.gaussians) // 4]
     end = probe.final_gaussians
     out.append(("Gaussian count plateaus", end <= (1 + GAUSSIAN_GROWTH_FRACTION) * start,

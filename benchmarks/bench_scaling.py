@@ -18,7 +18,9 @@ the map is in view, as in a SLAM frame. Gaussian counts 1k..200k at 320x240; pix
 
 PGO: :func:`mipslam.loop.solver.optimize_pose_graph` on ``make_synthetic_pose_graph`` graphs
 (2 laps of a circle, a loop edge every 5 keyframes, odometry noise 1 cm / 0.3 deg), plain full LM
-and SA-PGO with both switches (as ``benchmarks/bench_pgo.py``), one thread (the solver's default).
+and SA-PGO with both switches (as ``benchmarks/bench_pgo.py``), each over the whole graph, and SA-PGO
+over the newest ``loop.pgo_window_keyframes`` nodes as the SLAM loop runs it
+(:func:`mipslam.loop.solver.optimize_pose_graph_window`); one thread (the solver's default).
 
 Every time is the median of ``--repeats`` runs (>= 5 by default) after one warm-up call; the sizes
 are measured interleaved (round r times every size once) so a change of the machine's load hits
@@ -210,11 +212,15 @@ def make_case(torch, count, width, height, seed):
 
 
 def pgo_sweep(args) -> dict:
-    from mipslam.loop.solver import PGOOptions, optimize_pose_graph
+    from mipslam.config import LoopConfig
+    from mipslam.loop.solver import PGOOptions, optimize_pose_graph_window
     from mipslam.loop.synthetic import make_synthetic_pose_graph
 
-    methods = {"full LM": PGOOptions(),
-               "SA-PGO (both)": PGOOptions(spectral_edge_weighting=True, low_frequency_correction=True)}
+    sa_pgo = PGOOptions(spectral_edge_weighting=True, low_frequency_correction=True)
+    window = LoopConfig().pgo_window_keyframes
+    # (options, window of free keyframes; 0 = the whole graph)
+    methods = {"full LM": (PGOOptions(), 0), "SA-PGO (both)": (sa_pgo, 0),
+               f"SA-PGO, newest {window} free (the SLAM default)": (sa_pgo, window)}
     counts = (25, 100, 400) if args.quick else KEYFRAME_COUNTS
     graphs = {(n, s): make_synthetic_pose_graph(n, laps=2.0, sigma_translation=0.01, sigma_rotation=0.005, seed=s)
               for n in counts for s in range(args.pgo_repeats)}
@@ -222,13 +228,13 @@ def pgo_sweep(args) -> dict:
     edges = {n: int(graphs[(n, 0)].graph.num_edges) for n in counts}
     for (n, s), syn in graphs.items():  # warm-up once per size (first-call costs)
         if s == 0:
-            for options in methods.values():
-                optimize_pose_graph(syn.graph, options)
+            for options, free in methods.values():
+                optimize_pose_graph_window(syn.graph, options, free)
     for s in range(args.pgo_repeats):
         for n in counts:
-            for name, options in methods.items():
+            for name, (options, free) in methods.items():
                 wall, cpu = time.perf_counter(), time.process_time()
-                optimize_pose_graph(graphs[(n, s)].graph, options)
+                optimize_pose_graph_window(graphs[(n, s)].graph, options, free)
                 samples[(name, n)].append((time.perf_counter() - wall, time.process_time() - cpu))
         print(f"  pgo round {s + 1}/{args.pgo_repeats} (load {load_average()})", file=sys.stderr, flush=True)
     return {"edges": edges, "samples": {f"{m}:{n}": v for (m, n), v in samples.items()}, "counts": list(counts),

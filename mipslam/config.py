@@ -254,8 +254,14 @@ class LoopConfig:
     # claims millimetres; re-optimising for a 1-2 cm residual on every revisit keyframe only churns the map).
     min_correction_m: float = 0.02
     min_correction_deg: float = 1.0
+    # The pose-graph optimisation frees only the newest keyframes (older ones that share an edge with
+    # them stay fixed as anchors); 0 frees the whole graph. A whole-graph solve costs time in proportion
+    # to the keyframes, and a revisited room optimises every other keyframe: on a 2000-frame run the
+    # optimiser's time per frame grew 7x over 8 laps (docs/robustness.md, failure 12).
+    pgo_window_keyframes: int = 200
 
     def __post_init__(self):
+        _check(self.pgo_window_keyframes >= 0, "loop.pgo_window_keyframes", "must be >= 0 (0 = the whole graph)")
         _check(self.max_drift_sigmas >= 0, "loop.max_drift_sigmas", "must be >= 0 (0 = no check)")
         _check(self.min_correction_m >= 0 and self.min_correction_deg >= 0, "loop.min_correction_*",
                "must be >= 0 (0 = no floor)")

@@ -13,10 +13,11 @@ from mipslam.loop.pose_graph import (
     PoseGraph,
     edge_jacobians,
     edge_residuals,
+    mahalanobis_sq,
     perturb_left,
     se3_right_jacobian_inverse,
 )
-from mipslam.loop.solver import PGOOptions, optimize_pose_graph
+from mipslam.loop.solver import PGOOptions, optimize_pose_graph, optimize_pose_graph_window
 from mipslam.loop.synthetic import circle_trajectory, make_synthetic_pose_graph, trajectory_errors
 
 F64 = torch.float64
@@ -199,3 +200,53 @@ def test_graph_construction_validation_and_checkpoint_round_trip(tmp_path):
     with pytest.raises(CheckpointError, match="malformed"):
         PoseGraph.from_state_dict(broken)
     assert not math.isnan(optimize_pose_graph(loaded.without_edges([4])).final_cost)
+
+
+# ----------------------------------------------------------------------------- windowed optimisation
+
+
+def test_window_covering_the_graph_is_the_whole_graph_optimisation():
+    syn = make_synthetic_pose_graph(num_nodes=60, seed=2)
+    full = optimize_pose_graph(syn.graph, BOTH)
+    for window in (0, 60, 500):
+        windowed = optimize_pose_graph_window(syn.graph, BOTH, window)
+        assert torch.equal(windowed.poses, full.poses)
+        assert windowed.problem_nodes == 60 and windowed.problem_edges == syn.graph.num_edges
+
+
+def test_window_moves_only_its_nodes_and_anchors_them_to_the_older_ones():
+    syn = make_synthetic_pose_graph(num_nodes=120, laps=3.0, num_outlier_loops=2, seed=4)
+    graph, window = syn.graph, 40
+    result = optimize_pose_graph_window(graph, BOTH, window)
+    old = graph.num_nodes - window
+    assert torch.equal(result.poses[:old], graph.poses[:old])  # the history stays where it was
+    assert (result.poses[old:] - graph.poses[old:]).abs().max() > 1e-4  # the window was corrected
+    # the problem: the window plus the older nodes its edges reach, and only edges with a free end
+    touches = (graph.edge_nodes >= old).any(dim=1)
+    anchors = {int(v) for v in graph.edge_nodes[touches].ravel() if int(v) < old}
+    assert result.problem_nodes == window + len(anchors) < graph.num_nodes
+    assert result.problem_edges == int(touches.sum())
+    # results come back in the input graph's edge indices
+    assert result.loop_weights.shape == (graph.num_edges,) and result.edge_chi2.shape == (graph.num_edges,)
+    assert all(bool(touches[e]) and bool(graph.edge_is_loop[e]) for e in result.pruned_edges)
+    assert bool(torch.isfinite(result.edge_chi2).all()) and result.notes[0].startswith("window: 40 newest")
+    # the window's own cost went down; the chi2 of an edge the problem left out is its old value
+    assert result.final_cost < result.initial_cost
+    before = mahalanobis_sq(edge_residuals(graph.poses, graph.edge_nodes, graph.measurements), graph.information)
+    assert torch.allclose(result.edge_chi2[~touches], before[~touches])
+
+
+def test_window_without_older_edges_fixes_its_oldest_node():
+    truth = circle_trajectory(10, laps=1)
+    chain = PoseGraph.from_odometry(truth[:5], torch.eye(6, dtype=F64))
+    island = PoseGraph.from_odometry(truth[5:], torch.eye(6, dtype=F64))
+    graph = chain
+    for k in range(5):
+        graph = graph.add_node(island.poses[k])
+    for e in range(island.num_edges):  # the island's own chain, offset by 5, and nothing joining the two
+        i, j = island.edge_nodes[e].tolist()
+        graph = graph.add_edge(i + 5, j + 5, island.measurements[e] @ se3_exp(torch.full((6,), 0.01, dtype=F64)),
+                               island.information[e], "odometry")
+    result = optimize_pose_graph_window(graph, PLAIN, 5)
+    assert torch.equal(result.poses[:6], graph.poses[:6])  # node 5, the window's oldest, is the gauge
+    assert result.problem_nodes == 5

@@ -20,13 +20,13 @@ from mipslam.loop.descriptors import (
 )
 from mipslam.loop.pose_graph import PoseGraph, edge_jacobians, edge_residuals
 from mipslam.loop.registration import RegistrationOptions, RegistrationResult, register_point_clouds, register_rgbd_pair
-from mipslam.loop.solver import PGOOptions, PGOResult, optimize_pose_graph
+from mipslam.loop.solver import PGOOptions, PGOResult, optimize_pose_graph, optimize_pose_graph_window
 from mipslam.loop.spectral import low_frequency_basis, spectral_coherence_weights
 
 __all__ = [
     "LoopCloser", "LoopState", "LoopStep", "KeyframeView",
     "PoseGraph", "edge_residuals", "edge_jacobians",
-    "PGOOptions", "PGOResult", "optimize_pose_graph",
+    "PGOOptions", "PGOResult", "optimize_pose_graph", "optimize_pose_graph_window",
     "spectral_coherence_weights", "low_frequency_basis",
     "DescriptorOptions", "CandidateOptions", "LoopCandidate", "global_descriptor", "descriptor_similarity",
     "select_loop_candidates",

@@ -18,8 +18,9 @@ in the SLAM loop"):
    above ``consistent_chi2`` and a residual above ``min_correction_m`` or ``min_correction_deg``;
    edges that agree join the graph without an optimisation, which keeps a
    revisited route from re-optimising the whole graph on every keyframe), the graph is optimised
-   (:func:`optimize_pose_graph` with
-   :func:`mipslam.loop.from_config.pgo_options`). The odometry measurements are refreshed from the
+   (:func:`optimize_pose_graph_window` with
+   :func:`mipslam.loop.from_config.pgo_options`: the newest ``pgo_window_keyframes`` keyframes are
+   free, the older ones they connect to are fixed anchors, so the cost per optimisation is bounded). The odometry measurements are refreshed from the
    current keyframe poses first, so the optimisation only distributes the loop error along the
    chain and keeps the local structure that tracking and mapping estimated (as ORB-SLAM's
    essential-graph optimisation does). Pruned loop edges leave the graph for good.
@@ -47,7 +48,7 @@ from mipslam.loop.descriptors import DescriptorOptions, global_descriptor, selec
 from mipslam.loop.from_config import candidate_options, pgo_options, registration_options
 from mipslam.loop.pose_graph import PoseGraph, edge_residuals, mahalanobis_sq
 from mipslam.loop.registration import RegistrationResult, register_rgbd_pair
-from mipslam.loop.solver import PGOResult, optimize_pose_graph
+from mipslam.loop.solver import PGOResult, optimize_pose_graph_window
 from mipslam.types import Intrinsics
 
 logger = logging.getLogger(__name__)
@@ -168,6 +169,7 @@ class OptimisationReport:
     spectral_edge_weighting: bool
     low_frequency_correction: bool
     time_s: float
+    optimised_nodes: int = 0  # nodes of the solved problem: the free window and its fixed anchors
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -358,7 +360,7 @@ class LoopCloser:
     def _optimise(self, graph: PoseGraph, descriptors: torch.Tensor, keyframe: KeyframeView, new_edges: list[int],
                   reports: tuple[CandidateReport, ...]) -> LoopStep:
         graph = refresh_odometry(graph)
-        result = optimize_pose_graph(graph, self.pgo_options)
+        result = optimize_pose_graph_window(graph, self.pgo_options, self.config.pgo_window_keyframes)
         pruned = set(result.pruned_edges)
         inlier_limit = self.pgo_options.prune_chi2 if self.pgo_options.prune_chi2 is not None else self.pgo_options.kernel_scale
         inliers = [e for e in new_edges if e not in pruned and float(result.edge_chi2[e]) <= inlier_limit]
@@ -384,7 +386,8 @@ class LoopCloser:
             loop_edge_weights=_loop_edge_summary(graph, result, [*new_edges, *result.pruned_edges]),
             applied=applied, reason=reason, max_correction_m=max_m, max_correction_deg=max_deg,
             spectral_edge_weighting=self.pgo_options.spectral_edge_weighting,
-            low_frequency_correction=self.pgo_options.low_frequency_correction, time_s=result.time_s)
+            low_frequency_correction=self.pgo_options.low_frequency_correction, time_s=result.time_s,
+            optimised_nodes=result.problem_nodes)
         logger.info("keyframe %d: pose graph %d nodes / %d loops, cost %.4g -> %.4g in %d iterations, pruned %s; %s",
                     keyframe.keyframe_id, graph.num_nodes, report.loop_edges, result.initial_cost, result.final_cost,
                     result.iterations, report.pruned_edges, "applied" if applied else "not applied: " + reason)

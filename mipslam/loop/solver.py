@@ -30,7 +30,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -134,6 +134,8 @@ class PGOResult:
     time_s: float
     num_eigenvectors_used: int = 0
     notes: tuple[str, ...] = field(default_factory=tuple)
+    problem_nodes: int = 0  # nodes in the solved problem (all of them, or a window and its fixed border)
+    problem_edges: int = 0  # edges in the solved problem
 
 
 @dataclass(frozen=True)
@@ -431,4 +433,58 @@ def _optimize_pose_graph(graph: PoseGraph, options: PGOOptions) -> PGOResult:
         time_s=time.perf_counter() - start,
         num_eigenvectors_used=k_used,
         notes=tuple(notes),
+        problem_nodes=n,
+        problem_edges=e,
     )
+
+
+def optimize_pose_graph_window(graph: PoseGraph, options: PGOOptions, window: int) -> PGOResult:
+    """:func:`optimize_pose_graph` over the ``window`` newest nodes only, so that its cost stops
+    growing with the graph (the working-memory idea of RTAB-Map).
+
+    Free: nodes ``N - window .. N - 1``. Fixed: every older node that shares an edge with a free
+    one (the odometry predecessor of the window and the old ends of its loop edges), which anchor
+    the window to the rest of the map and fix the gauge. Left out: every other node and every
+    edge between two older nodes; their poses come back unchanged. A revisit then moves the new
+    keyframes onto the old map instead of bending the whole history. ``window <= 0``, or a window
+    that holds every node, is the plain whole-graph optimisation.
+
+    The result is in the input graph's indices: ``pruned_edges``, ``loop_weights`` and
+    ``spectral_weights`` of edges outside the problem are (none), 1 and 1; ``edge_chi2`` is
+    evaluated on every edge; ``initial_cost``/``final_cost`` are those of the window's problem.
+    """
+    n = graph.num_nodes
+    first_free = n - window
+    if window <= 0 or first_free <= 0:
+        return optimize_pose_graph(graph, options)
+    start = time.perf_counter()
+    edge_nodes = graph.edge_nodes.cpu()
+    in_problem = (edge_nodes >= first_free).any(dim=1)  # [E] edges with a free end
+    edge_index = torch.nonzero(in_problem).ravel()  # [E'] into the input graph
+    nodes = torch.unique(torch.cat([torch.arange(first_free, n), edge_nodes[in_problem].ravel()]))  # sorted [N']
+    local = torch.full((n,), -1, dtype=torch.int64)
+    local[nodes] = torch.arange(nodes.numel())
+    fixed = [int(local[k]) for k in nodes.tolist() if k < first_free]
+    fixed += [int(local[k]) for k in options.fixed_nodes if first_free <= k < n]
+    if not fixed:  # a window with no edge to older nodes: its oldest node fixes the gauge
+        fixed = [int(local[first_free])]
+    device = graph.device
+    sub = PoseGraph(graph.poses[nodes.to(device)], local[edge_nodes[in_problem]].to(device),
+                    graph.measurements[edge_index.to(device)], graph.information[edge_index.to(device)],
+                    graph.edge_is_loop[edge_index.to(device)])
+    result = optimize_pose_graph(sub, replace(options, fixed_nodes=tuple(sorted(set(fixed)))))
+
+    cpu = dict(dtype=torch.float64, device="cpu")
+    poses = graph.poses.to(**cpu).clone()
+    poses[nodes] = result.poses.to(**cpu)
+    e = graph.num_edges
+    loop_weights = torch.ones(e, **cpu)
+    loop_weights[edge_index] = result.loop_weights.to(**cpu)
+    spectral = torch.ones(e, 2, **cpu)
+    spectral[edge_index] = result.spectral_weights.to(**cpu)
+    chi2 = mahalanobis_sq(edge_residuals(poses, edge_nodes, graph.measurements.to(**cpu)), graph.information.to(**cpu))
+    note = (f"window: {n - first_free} newest of {n} nodes free, {len(fixed)} older fixed; "
+            f"{edge_index.numel()} of {e} edges")
+    return replace(result, poses=poses.to(device), pruned_edges=tuple(int(edge_index[i]) for i in result.pruned_edges),
+                   loop_weights=loop_weights, edge_chi2=chi2, spectral_weights=spectral,
+                   time_s=time.perf_counter() - start, notes=(note, *result.notes))
