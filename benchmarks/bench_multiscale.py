@@ -59,17 +59,19 @@ def _checks(evaluation) -> list[tuple[str, bool]]:
     return out
 
 
-def _own_maps_table(sequence: Path, out: Path, main_run: Path, every: int | None, overrides: list[str],
-                    results: dict) -> str:
-    """Each mode's own map (trained with that footprint), rendered in that mode at every scale."""
+def _own_maps_table(name: str, config_path: Path, dataset_overrides: list[str], main_run: Path,
+                    every: int | None, overrides: list[str], results: dict) -> str:
+    """Each mode's own map (trained with that footprint), rendered in that mode at every scale.
+
+    ``main_run`` is the eaa run; the point and mip runs go beside it (``<main_run>_point``, ``_mip``).
+    """
     from mipslam.evaluation.render_eval import RenderEvalOptions, evaluate_render
 
     runs = {"eaa": main_run}
     for mode in ("point", "mip"):
-        runs[mode] = out / f"synth_run_{mode}"
+        runs[mode] = main_run.with_name(f"{main_run.name}_{mode}")
         if not (runs[mode] / "map.ply").is_file():
-            _run(REPO / "configs" / "synthetic.yaml", runs[mode],
-                 [f"dataset.path={sequence}", f"render.mode={mode}", *overrides])
+            _run(config_path, runs[mode], [*dataset_overrides, f"render.mode={mode}", *overrides])
     table = {}
     for mode, run_dir in runs.items():
         evaluation = evaluate_render(run_dir, RenderEvalOptions(scales=SCALES, modes=(mode,), every=every, lpips=False,
@@ -77,8 +79,8 @@ def _own_maps_table(sequence: Path, out: Path, main_run: Path, every: int | None
         metrics = json.loads((run_dir / "metrics.json").read_text())
         table[mode] = {"rows": {row.scale: row for row in evaluation.rows},
                        "ate": metrics["trajectory"]["ate"]["rmse"], "gaussians": evaluation.protocol["map"]["gaussians"]}
-    lines = ["**Each mode's own map** (the sequence mapped with render.mode = point / mip / eaa, each map rendered in "
-             "its own mode; PSNR dB / SSIM)", "",
+    lines = [f"**{name}: each mode's own map** (the sequence mapped with render.mode = point / mip / eaa, each map "
+             "rendered in its own mode; PSNR dB / SSIM)", "",
              "| scale | point (own map) | mip (own map) | eaa (own map) | eaa - point | eaa - mip |", "|---|---|---|---|---|---|"]
     for scale in SCALES:
         cells = {m: table[m]["rows"][scale] for m in ("point", "mip", "eaa")}
@@ -86,7 +88,7 @@ def _own_maps_table(sequence: Path, out: Path, main_run: Path, every: int | None
                      + f" | {cells['eaa'].psnr - cells['point'].psnr:+.2f} | {cells['eaa'].psnr - cells['mip'].psnr:+.2f} |")
     lines += ["", "ATE RMSE " + ", ".join(f"{m} {table[m]['ate'] * 100:.2f} cm" for m in table)
               + "; Gaussians " + ", ".join(f"{m} {table[m]['gaussians']}" for m in table)]
-    results["own_maps"] = {m: {"run_dir": str(runs[m]), "ate_rmse_m": table[m]["ate"],
+    results[f"{name}, own maps"] = {m: {"run_dir": str(runs[m]), "ate_rmse_m": table[m]["ate"],
                                "rows": [r.to_dict() for r in table[m]["rows"].values()]} for m in table}
     return "\n".join(lines)
 
@@ -144,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip-synthetic", action="store_true")
     parser.add_argument("--set", dest="overrides", action="append", default=[], help="extra config override")
     parser.add_argument("--own-maps", action="store_true",
-                        help="also map the synthetic sequence with point and mip and render each map in its own mode")
+                        help="also map each sequence with point and mip and render each map in its own mode")
     parser.add_argument("--quick", action="store_true", help="smoke run: 64x48, 6 frames")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
@@ -172,7 +174,8 @@ def main(argv: list[str] | None = None) -> int:
             name = f"data_synth loop, {args.frames} frames mapped at {args.width}x{args.height}"
             sections.append(_section(name, run_dir, args.every, seconds, results))
             if args.own_maps:
-                sections.append(_own_maps_table(sequence, args.out, run_dir, args.every, args.overrides, results))
+                sections.append(_own_maps_table(name, REPO / "configs" / "synthetic.yaml", [f"dataset.path={sequence}"],
+                                                run_dir, args.every, args.overrides, results))
     if not args.skip_replica:
         if not args.replica.is_dir():
             message = f"replica_room0_20 skipped: {args.replica} not found"
@@ -181,10 +184,15 @@ def main(argv: list[str] | None = None) -> int:
         else:
             run_dir = args.out / "replica_run"
             frames = 6 if args.quick else 20
-            seconds = _run(REPO / "configs" / "replica.yaml", run_dir,
-                           [f"dataset.path={args.replica}", f"dataset.max_frames={frames}", *args.overrides])
-            sections.append(_section(f"Replica room0, {frames} frames mapped at 300x170 (downscale 4)", run_dir,
-                                     args.every, seconds, results))
+            dataset = [f"dataset.path={args.replica}", f"dataset.max_frames={frames}"]
+            seconds = None
+            if not (run_dir / "map.ply").is_file():
+                seconds = _run(REPO / "configs" / "replica.yaml", run_dir, [*dataset, *args.overrides])
+            name = f"Replica room0, {frames} frames mapped at 300x170 (downscale 4)"
+            sections.append(_section(name, run_dir, args.every, seconds, results))
+            if args.own_maps:
+                sections.append(_own_maps_table(name, REPO / "configs" / "replica.yaml", dataset, run_dir, args.every,
+                                                args.overrides, results))
     report = "\n\n".join(sections)
     print(report)
     (args.out / "multiscale.md").write_text(report + "\n", encoding="utf-8")
