@@ -18,9 +18,9 @@ in the SLAM loop"):
    above ``consistent_chi2`` and a residual above ``min_correction_m`` or ``min_correction_deg``;
    edges that agree join the graph without an optimisation, which keeps a
    revisited route from re-optimising the whole graph on every keyframe), the graph is optimised
-   (:func:`optimize_pose_graph_window` with
-   :func:`mipslam.loop.from_config.pgo_options`: the newest ``pgo_window_keyframes`` keyframes are
-   free, the older ones they connect to are fixed anchors, so the cost per optimisation is bounded). The odometry measurements are refreshed from the
+   (:func:`optimize_pose_graph_window` with :func:`mipslam.loop.from_config.pgo_options`: the newest
+   ``pgo_window_keyframes`` keyframes are free, the older ones they connect to are fixed anchors,
+   so the cost per optimisation is bounded). The odometry measurements are refreshed from the
    current keyframe poses first, so the optimisation only distributes the loop error along the
    chain and keeps the local structure that tracking and mapping estimated (as ORB-SLAM's
    essential-graph optimisation does). Pruned loop edges leave the graph for good.

@@ -469,9 +469,9 @@ def optimize_pose_graph_window(graph: PoseGraph, options: PGOOptions, window: in
     if not fixed:  # a window with no edge to older nodes: its oldest node fixes the gauge
         fixed = [int(local[first_free])]
     device = graph.device
-    sub = PoseGraph(graph.poses[nodes.to(device)], local[edge_nodes[in_problem]].to(device),
-                    graph.measurements[edge_index.to(device)], graph.information[edge_index.to(device)],
-                    graph.edge_is_loop[edge_index.to(device)])
+    kept = graph.select_edges(in_problem.to(device))
+    sub = PoseGraph(graph.poses[nodes.to(device)], local[edge_nodes[in_problem]].to(device), kept.measurements,
+                    kept.information, kept.edge_is_loop)
     result = optimize_pose_graph(sub, replace(options, fixed_nodes=tuple(sorted(set(fixed)))))
 
     cpu = dict(dtype=torch.float64, device="cpu")
@@ -483,7 +483,7 @@ def optimize_pose_graph_window(graph: PoseGraph, options: PGOOptions, window: in
     spectral = torch.ones(e, 2, **cpu)
     spectral[edge_index] = result.spectral_weights.to(**cpu)
     chi2 = mahalanobis_sq(edge_residuals(poses, edge_nodes, graph.measurements.to(**cpu)), graph.information.to(**cpu))
-    note = (f"window: {n - first_free} newest of {n} nodes free, {len(fixed)} older fixed; "
+    note = (f"window: {window} newest of {n} nodes free, {len(fixed)} older fixed; "
             f"{edge_index.numel()} of {e} edges")
     return replace(result, poses=poses.to(device), pruned_edges=tuple(int(edge_index[i]) for i in result.pruned_edges),
                    loop_weights=loop_weights, edge_chi2=chi2, spectral_weights=spectral,
