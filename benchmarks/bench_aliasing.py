@@ -9,7 +9,7 @@ pixel-centre convention of :meth:`mipslam.types.Intrinsics.scaled`):
   ground truth = ``exact`` rendered at 8x the resolution of that scale, area-averaged 8x8 down;
   each mode is rendered at the scale itself and scored by PSNR of the colour image (black background).
 A second table varies the EAA node cap (1, 2, 4, 8, 16) and reports PSNR and time per scale;
-``--tune`` adds a small grid over the EAA constants (gamma, eta, tau, point area, k).
+``--tune`` adds a small grid over the EAA constants (gamma, eta, tau, single-node sigma, k).
 
     .venv/bin/python benchmarks/bench_aliasing.py            # the tables of docs/renderer.md
     .venv/bin/python benchmarks/bench_aliasing.py --tune     # constants search (a few minutes more)
@@ -83,7 +83,7 @@ def psnr(image: torch.Tensor, reference: torch.Tensor) -> float:
     return 10.0 * math.log10(1.0 / max(mse, 1e-20))
 
 
-def eaa_nodes_per_pair(scene, intr: Intrinsics, eaa_max_nodes=4, eaa_gamma=0.5, eaa_point_area=16.0,
+def eaa_nodes_per_pair(scene, intr: Intrinsics, eaa_max_nodes=4, eaa_gamma=0.5, eaa_single_node_sigma=1.0,
                        k_sigma=3.0, **_ignored) -> float:
     """Machine-independent EAA cost: mean node count over the (pixel, Gaussian) pairs of the k-sigma boxes.
 
@@ -95,7 +95,7 @@ def eaa_nodes_per_pair(scene, intr: Intrinsics, eaa_max_nodes=4, eaa_gamma=0.5, 
     xx, xy, yy = proj.cov2d[proj.visible].unbind(-1)
     det = proj.cov_det[proj.visible]
     nodes = footprint.eaa_node_counts(xx, xy, yy, det, max_nodes=eaa_max_nodes, gamma=eaa_gamma,
-                                      point_area=eaa_point_area).double()
+                                      single_node_sigma=eaa_single_node_sigma).double()
     support = (2 * k_sigma * xx.sqrt() + 1) * (2 * k_sigma * yy.sqrt() + 1)
     return float((nodes * support).sum() / support.sum().clamp_min(1e-9))
 
@@ -190,10 +190,11 @@ def main(argv=None) -> int:
 def tune(scene, truth, args):
     """Constants search. Accuracy: mean PSNR over the scales; cost: nodes per pair (deterministic)."""
     native = scene[-1]
-    defaults = dict(eaa_max_nodes=4, eaa_gamma=0.5, eaa_eta=0.0, eaa_tau=0.25, eaa_point_area=16.0, k_sigma=3.0)
+    defaults = dict(eaa_max_nodes=4, eaa_gamma=0.5, eaa_eta=0.0, eaa_tau=0.25, eaa_single_node_sigma=1.0, k_sigma=3.0)
     grid = [dict(eaa_gamma=g, eaa_max_nodes=m) for m in (4, 8) for g in (0.0, 0.25, 0.5, 1.0, 2.0)]
     grid += [dict(eaa_eta=eta, eaa_tau=tau) for eta, tau in ((0.5, 0.1), (1.0, 0.25), (2.0, 0.25), (2.0, 0.5))]
     grid += [dict(k_sigma=k) for k in (2.5, 3.5, 4.0)]
+    grid += [dict(eaa_single_node_sigma=s) for s in (0.5, 0.7, 0.8, 1.5, 1e9)]
     print("\n## EAA constants on the aliasing scene (others at the defaults "
           + ", ".join(f"{k}={v}" for k, v in defaults.items()) + ")\n")
     print("| setting | " + " | ".join(f"1/{round(1 / s)}" if s < 1 else "1" for s in SCALES)
@@ -210,40 +211,57 @@ def tune(scene, truth, args):
         name = ", ".join(f"{k}={v}" for k, v in change.items()) or "defaults"
         print(f"| {name} | " + " | ".join(f"{p:.2f}" for p in row) + f" | {statistics.mean(row):.3f} | "
               f"{eaa_nodes_per_pair(scene, native, **options):.2f} | {1000 * total:.0f} |")
-    tune_point_area()
+    tune_single_node_sigma()
 
 
-def tune_point_area():
-    """Large, nearly round splats (sigma 1..12 px, kappa <= 1.5): the 1-node threshold ``eaa_point_area``.
+def tune_single_node_sigma():
+    """Splats from sub-pixel to large (minor-axis sigma 0.3..6 px, kappa 1..4): the 1-node threshold
+    ``eaa_single_node_sigma`` (above it one node moment-matched to the pixel box, below it rows).
 
-    Mean absolute per-pixel opacity error against ``exact`` over each splat's 9x9 neighbourhood, and the
-    fraction of splats that take the 1-node path; ``mip`` for comparison.
+    Mean absolute per-pixel opacity error against ``exact`` over each splat's 13x13 neighbourhood, with the
+    renderer's k-sigma cut (k = 3) and without one (k = 8: the approximation alone), per band of minor-axis
+    sigma; ``mip`` and 4 rows everywhere for comparison.
     """
     g = torch.Generator().manual_seed(7)
-    n = 2000
-    sigma = torch.exp(math.log(1.0) + (math.log(12.0) - math.log(1.0)) * torch.rand(n, generator=g, dtype=torch.float64))
-    kappa = 1.0 + 0.5 * torch.rand(n, generator=g, dtype=torch.float64)
-    theta = math.pi * torch.rand(n, generator=g, dtype=torch.float64)
+    n = 3000
+    dtype = torch.float64
+    sigma_minor = torch.exp(math.log(0.3) + (math.log(6.0) - math.log(0.3)) * torch.rand(n, generator=g, dtype=dtype))
+    kappa = 1.0 + 3.0 * torch.rand(n, generator=g, dtype=dtype)
+    theta = math.pi * torch.rand(n, generator=g, dtype=dtype)
     c, s_ = torch.cos(theta), torch.sin(theta)
-    s1, s2 = sigma, sigma / kappa
+    s1, s2 = sigma_minor * kappa, sigma_minor
     xx, yy, xy = c * c * s1**2 + s_ * s_ * s2**2, s_ * s_ * s1**2 + c * c * s2**2, c * s_ * (s1**2 - s2**2)
     det = (s1 * s2) ** 2
-    mx, my = torch.rand(n, generator=g, dtype=torch.float64) - 0.5, torch.rand(n, generator=g, dtype=torch.float64) - 0.5
-    o = torch.ones(n, dtype=torch.float64)
-    r = torch.arange(-4, 5, dtype=torch.float64)
+    mx, my = torch.rand(n, generator=g, dtype=dtype) - 0.5, torch.rand(n, generator=g, dtype=dtype) - 0.5
+    o = torch.ones(n, dtype=dtype)
+    r = torch.arange(-6, 7, dtype=dtype)
     py, px = (t.reshape(-1, 1) for t in torch.meshgrid(r, r, indexing="ij"))
     exact = footprint.exact_pixel_opacity(px, py, mx, my, xx, xy, yy, det, o)
-    mip = footprint.footprint_parameters("mip", xx, xy, yy, det, o)
-    mip_err = (footprint.centre_sample_opacity(px, py, mx, my, *mip, k_sigma=3.0) - exact).abs().mean().item()
-    print("\n## eaa_point_area on large round splats (sigma 1..12 px): mean |a - exact| (1e-4) and 1-node share\n")
-    print(f"mip: {1e4 * mip_err:.2f}\n")
-    print("| eaa_point_area (px^2) | eaa error (1e-4) | share of 1-node splats |")
-    print("|---|---|---|")
-    for area in (2.0, 4.0, 9.0, 16.0, 25.0, 64.0):
-        nodes = footprint.eaa_node_counts(xx, xy, yy, det, max_nodes=4, gamma=0.5, point_area=area)
-        eaa = footprint.eaa_pixel_opacity(px, py, mx, my, xx, xy, yy, det, o, nodes, row_capacity=4, k_sigma=3.0,
-                                          eta=0.0, tau=0.25)
-        print(f"| {area:g} | {1e4 * (eaa - exact).abs().mean().item():.2f} | {(nodes == 1).double().mean().item():.2f} |")
+    bands = [(0.3, 0.6), (0.6, 1.0), (1.0, 1.5), (1.5, 3.0), (3.0, 6.0)]
+
+    def errors(k_sigma, single_node_sigma=None, mode="eaa"):
+        if mode == "mip":
+            value = footprint.centre_sample_opacity(px, py, mx, my, *footprint.footprint_parameters(
+                "mip", xx, xy, yy, det, o), k_sigma=k_sigma)
+        else:
+            fxx, fxy, fyy, fdet, fo, nodes = footprint.mode_footprint(
+                "eaa", xx, xy, yy, det, o, max_nodes=4, gamma=0.5, single_node_sigma=single_node_sigma)
+            value = footprint.eaa_pixel_opacity(px, py, mx, my, fxx, fxy, fyy, fdet, fo, nodes, row_capacity=4,
+                                                k_sigma=k_sigma, eta=0.0, tau=0.25)
+        per_splat = (value - exact).abs().mean(0)
+        return [per_splat[(sigma_minor >= lo) & (sigma_minor < hi)].mean().item() for lo, hi in bands]
+
+    print("\n## eaa_single_node_sigma: mean |a - exact| (1e-4) per band of minor-axis sigma (px), kappa 1..4\n")
+    header = " | ".join(f"{lo}-{hi}" for lo, hi in bands)
+    print(f"| setting | k | {header} | share of 1-node splats |")
+    print("|" + "---|" * (len(bands) + 3))
+    for k_sigma in (3.0, 8.0):
+        print(f"| mip | {k_sigma:g} | " + " | ".join(f"{1e4 * e:.1f}" for e in errors(k_sigma, mode="mip")) + " | 1.00 |")
+        for threshold in (0.5, 0.7, 0.8, 1.0, 1.5, 3.0, 1e9):
+            share = (sigma_minor >= threshold).double().mean().item()
+            name = "4 rows everywhere" if threshold > 100 else f"eaa_single_node_sigma={threshold:g}"
+            print(f"| {name} | {k_sigma:g} | " + " | ".join(f"{1e4 * e:.1f}" for e in errors(k_sigma, threshold))
+                  + f" | {share:.2f} |")
 
 
 if __name__ == "__main__":

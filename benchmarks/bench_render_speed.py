@@ -367,7 +367,7 @@ def main(argv=None):
                                  extent_sigma=opts.k_sigma)
         settings = FootprintSettings(mode="point", k_sigma=opts.k_sigma, max_nodes=int(opts.eaa_max_nodes),
                                      gamma=opts.eaa_gamma, eta=opts.eaa_eta, tau=opts.eaa_tau,
-                                     point_area=opts.eaa_point_area, exact_order=opts.exact_order)
+                                     single_node_sigma=opts.eaa_single_node_sigma, exact_order=opts.exact_order)
         image = cpu_backend.rasterize_projected(proj, W, H, settings)
         for _ in range(args.repeats):
             with cpu_backend.profile_kernels() as kernels:

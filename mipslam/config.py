@@ -107,7 +107,7 @@ class RenderConfig:
     eaa_gamma: float = 0.5  # node growth with anisotropy: n = n_size (1 + gamma ln kappa)
     eaa_eta: float = 0.0  # boundary emphasis b(d) = 1 + eta exp(-d / tau)
     eaa_tau: float = 0.25  # pixels
-    eaa_point_area: float = 16.0  # sigma1*sigma2 (px^2) from which a round splat needs only 1 node
+    eaa_single_node_sigma: float = 1.0  # minor-axis std-dev (px) from which 1 moment-matched node suffices
     eaa_k_sigma: float = 3.0
     near_plane: float = 0.01
 
@@ -116,7 +116,7 @@ class RenderConfig:
         _check(self.eaa_gamma >= 0, "render.eaa_gamma", "must be >= 0")
         _check(self.eaa_eta >= 0, "render.eaa_eta", "must be >= 0")
         _check(self.eaa_tau > 0, "render.eaa_tau", "must be positive")
-        _check(self.eaa_point_area > 0, "render.eaa_point_area", "must be positive (px^2)")
+        _check(self.eaa_single_node_sigma >= 0, "render.eaa_single_node_sigma", "must be >= 0 (px)")
         _check(self.eaa_k_sigma > 0, "render.eaa_k_sigma", "must be positive")
         _check(self.filter_3d_scale > 0, "render.filter_3d_scale", "must be positive")
         _check(self.near_plane > 0, "render.near_plane", "must be positive")

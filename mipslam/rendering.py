@@ -23,7 +23,7 @@ def render_options(config: RenderConfig) -> dict:
         "eaa_gamma": config.eaa_gamma,
         "eaa_eta": config.eaa_eta,
         "eaa_tau": config.eaa_tau,
-        "eaa_point_area": config.eaa_point_area,
+        "eaa_single_node_sigma": config.eaa_single_node_sigma,
         "filter_3d_scale": config.filter_3d_scale if config.filter_3d else None,
     }
 

@@ -104,7 +104,7 @@ CASES = [
     ("mip", {}),
     ("ewa", {}),
     ("eaa", {}),
-    ("eaa", {"eaa_eta": 2.0, "eaa_tau": 0.25, "eaa_max_nodes": 10, "eaa_point_area": 1.0}),
+    ("eaa", {"eaa_eta": 2.0, "eaa_tau": 0.25, "eaa_max_nodes": 10, "eaa_single_node_sigma": 0.5}),
     ("point", {"filter_3d_scale": 0.2}),
     ("eaa", {"filter_3d_scale": 0.2, "eaa_eta": 1.0}),
 ]

@@ -53,12 +53,10 @@ def mean_abs_error_against_exact(mode, dtype=torch.float32, **eaa):
     px, py = neighbourhood(2, dtype)
     exact = fp.exact_pixel_opacity(px.double(), py.double(), mx.double(), my.double(), xx.double(), xy.double(),
                                    yy.double(), det.double(), o.double())
-    cxx, cxy, cyy, cdet, co = fp.footprint_parameters(mode, xx, xy, yy, det, o)
-    nodes = None
-    if mode == "eaa":
-        nodes = fp.eaa_node_counts(cxx, cxy, cyy, cdet, max_nodes=eaa.get("max_nodes", DEFAULTS.eaa_max_nodes),
-                                   gamma=eaa.get("gamma", DEFAULTS.eaa_gamma),
-                                   point_area=eaa.get("point_area", DEFAULTS.eaa_point_area))
+    cxx, cxy, cyy, cdet, co, nodes = fp.mode_footprint(
+        mode, xx, xy, yy, det, o, max_nodes=eaa.get("max_nodes", DEFAULTS.eaa_max_nodes),
+        gamma=eaa.get("gamma", DEFAULTS.eaa_gamma),
+        single_node_sigma=eaa.get("single_node_sigma", DEFAULTS.eaa_single_node_sigma))
     value = fp.pixel_opacity(mode, px, py, mx, my, cxx, cxy, cyy, cdet, co, nodes, k_sigma=K_SIGMA,
                              row_capacity=eaa.get("max_nodes", DEFAULTS.eaa_max_nodes),
                              eta=eaa.get("eta", DEFAULTS.eaa_eta), tau=eaa.get("tau", DEFAULTS.eaa_tau))
@@ -120,40 +118,85 @@ def test_eaa_is_exact_for_axis_aligned_and_enclosed_gaussians():
     assert abs(value.item() - 2 * math.pi * math.sqrt(det.item())) < 1e-9
 
 
+def eaa_values(px, py, mx, my, xx, xy, yy, det, o):
+    cxx, cxy, cyy, cdet, co, nodes = fp.mode_footprint("eaa", xx, xy, yy, det, o, max_nodes=DEFAULTS.eaa_max_nodes,
+                                                       gamma=DEFAULTS.eaa_gamma,
+                                                       single_node_sigma=DEFAULTS.eaa_single_node_sigma)
+    value = fp.eaa_pixel_opacity(px, py, mx, my, cxx, cxy, cyy, cdet, co, nodes, row_capacity=DEFAULTS.eaa_max_nodes,
+                                 k_sigma=K_SIGMA, eta=DEFAULTS.eaa_eta, tau=DEFAULTS.eaa_tau)
+    return value, nodes
+
+
 def test_large_round_gaussians_use_one_node_and_equal_the_undilated_point_value():
     dtype = torch.float32
-    sigma = torch.tensor([5.0, 8.0, 12.0, 40.0], dtype=dtype)
+    sigma = torch.tensor([10.0, 12.0, 40.0, 100.0], dtype=dtype)
     xx, xy, yy = sigma**2 * 1.0, torch.zeros_like(sigma), sigma**2 * 1.2  # kappa ~ 1.1: round
     det = xx * yy
-    nodes = fp.eaa_node_counts(xx, xy, yy, det, max_nodes=DEFAULTS.eaa_max_nodes, gamma=DEFAULTS.eaa_gamma,
-                               point_area=DEFAULTS.eaa_point_area)
-    assert nodes.tolist() == [1, 1, 1, 1]
     mx, my = torch.tensor(0.37), torch.tensor(-1.2)
     px, py = neighbourhood(4, dtype)
     o = torch.full_like(sigma, 0.8)
-    eaa = fp.eaa_pixel_opacity(px, py, mx, my, xx, xy, yy, det, o, nodes, row_capacity=4, k_sigma=K_SIGMA,
-                               eta=DEFAULTS.eaa_eta, tau=DEFAULTS.eaa_tau)
+    eaa, nodes = eaa_values(px, py, mx, my, xx, xy, yy, det, o)
+    assert nodes.tolist() == [1, 1, 1, 1]
     dx, dy = px - mx, py - my
     point = o * torch.exp(-0.5 * (dx * dx / xx + dy * dy / yy))  # undilated centre sample, computed here
     assert (eaa - point).abs().max().item() < 1e-3
     # and from sigma ~ 12 px on, the point value is itself within 1e-3 of the true pixel integral
     exact = fp.exact_pixel_opacity(px, py, mx, my, xx, xy, yy, det, o)
-    assert (eaa - exact)[:, 2:].abs().max().item() < 1e-3
+    assert (eaa - exact)[:, 1:].abs().max().item() < 1e-3
+
+
+def test_the_single_node_is_moment_matched_to_the_pixel_box():
+    # From sigma ~ 1 px on, one node of Sigma + I/12 (energy kept) is closer to the pixel integral than the
+    # point value, than mip's Sigma + 0.1 I, and than 2 or 4 rows of the row rule (docs/renderer.md).
+    dtype = torch.float64
+    g = torch.Generator().manual_seed(5)
+    n = 300
+    sigma_minor = 1.0 + 2.0 * torch.rand(n, generator=g, dtype=dtype)
+    kappa = 1.0 + 3.0 * torch.rand(n, generator=g, dtype=dtype)
+    theta = math.pi * torch.rand(n, generator=g, dtype=dtype)
+    mx, my = torch.rand(n, generator=g, dtype=dtype) - 0.5, torch.rand(n, generator=g, dtype=dtype) - 0.5
+    xx, xy, yy, det = rotated_covariance(sigma_minor * kappa, kappa, theta)
+    o = torch.full_like(xx, 0.9)
+    px, py = neighbourhood(6, dtype)
+    wide = 8.0  # no k-sigma cut: the approximation error alone
+    exact = fp.exact_pixel_opacity(px, py, mx, my, xx, xy, yy, det, o, k_sigma=wide)
+    cxx, cxy, cyy, cdet, co, nodes = fp.mode_footprint("eaa", xx, xy, yy, det, o, max_nodes=4, gamma=0.5,
+                                                       single_node_sigma=1.0)
+    assert torch.all(nodes == 1)
+    single = fp.centre_sample_opacity(px, py, mx, my, cxx, cxy, cyy, cdet, co, wide)
+    errors = {"single": (single - exact).abs().sum(0).mean().item()}
+    for name in ("point", "mip"):
+        fxx, fxy, fyy, fdet, fo = fp.footprint_parameters("mip", xx, xy, yy, det, o) if name == "mip" \
+            else (xx, xy, yy, det, o)
+        errors[name] = (fp.centre_sample_opacity(px, py, mx, my, fxx, fxy, fyy, fdet, fo, wide) - exact).abs().sum(0).mean().item()
+    for rows in (2, 4):
+        value = fp.eaa_pixel_opacity(px, py, mx, my, xx, xy, yy, det, o, torch.full((n,), rows), row_capacity=rows,
+                                     k_sigma=wide, eta=0.0, tau=0.25)
+        errors[f"{rows} rows"] = (value - exact).abs().sum(0).mean().item()
+    assert errors["single"] < 0.1 * errors["mip"], errors
+    assert errors["single"] < 0.02 * errors["point"], errors
+    assert errors["single"] < errors["2 rows"] and errors["single"] < errors["4 rows"], errors
+    # and it keeps the mass: o' 2 pi sqrt(det') = o 2 pi sqrt(det)
+    assert torch.allclose(co * torch.sqrt(cdet), o * torch.sqrt(det), rtol=1e-12)
 
 
 def test_node_counts_grow_with_anisotropy_and_respect_the_cap():
     theta = torch.tensor(0.4)
     kappas = torch.tensor([1.0, 2.0, 5.0, 20.0, 100.0, 1000.0])
     xx, xy, yy, det = rotated_covariance(torch.full_like(kappas, 0.6), kappas, theta)
-    counts = fp.eaa_node_counts(xx, xy, yy, det, max_nodes=8, gamma=1.0, point_area=16.0)
+    counts = fp.eaa_node_counts(xx, xy, yy, det, max_nodes=8, gamma=1.0, single_node_sigma=1.0)
     # n = round(2 (1 + ln kappa)): 2, 3, 5, 8 (capped), 8, 8
     assert counts.tolist() == [2, 3, 5, 8, 8, 8]
     defaults = fp.eaa_node_counts(xx, xy, yy, det, max_nodes=DEFAULTS.eaa_max_nodes, gamma=DEFAULTS.eaa_gamma,
-                                  point_area=DEFAULTS.eaa_point_area)
+                                  single_node_sigma=DEFAULTS.eaa_single_node_sigma)
     assert defaults[0].item() == 2 and torch.all(defaults[1:] >= defaults[:-1])
     assert defaults.max().item() == DEFAULTS.eaa_max_nodes
-    capped = fp.eaa_node_counts(xx, xy, yy, det, max_nodes=1, gamma=1.0, point_area=4.0)
+    capped = fp.eaa_node_counts(xx, xy, yy, det, max_nodes=1, gamma=1.0, single_node_sigma=1.0)
     assert capped.tolist() == [1] * 6
+    # a splat whose minor axis is at least single_node_sigma takes one node however elongated it is
+    wide = fp.eaa_node_counts(*rotated_covariance(kappas * 1.5, kappas, theta), max_nodes=8, gamma=1.0,
+                              single_node_sigma=1.0)
+    assert wide.tolist() == [1] * 6
 
 
 @pytest.mark.parametrize("mode", ["point", "mip", "ewa"])

@@ -89,10 +89,10 @@ def brute_force(means, quats, scales, opacities, colors, viewmat, K, width, heig
     ids = torch.nonzero(proj.visible).squeeze(1)
     ids = ids[torch.argsort(proj.depths[ids], stable=True)]
     xx, xy, yy = proj.cov2d[ids].unbind(-1)
-    xx, xy, yy, det, o = fp.footprint_parameters(mode, xx, xy, yy, proj.cov_det[ids], proj.opacities[ids])
     d = RenderOptions()
-    nodes = fp.eaa_node_counts(xx, xy, yy, det, max_nodes=d.eaa_max_nodes, gamma=d.eaa_gamma,
-                               point_area=d.eaa_point_area)
+    xx, xy, yy, det, o, nodes = fp.mode_footprint(mode, xx, xy, yy, proj.cov_det[ids], proj.opacities[ids],
+                                                  max_nodes=d.eaa_max_nodes, gamma=d.eaa_gamma,
+                                                  single_node_sigma=d.eaa_single_node_sigma)
     v, u = torch.meshgrid(torch.arange(height, dtype=means.dtype), torch.arange(width, dtype=means.dtype),
                           indexing="ij")
     a = fp.pixel_opacity(mode, u.reshape(-1, 1), v.reshape(-1, 1), proj.means2d[ids, 0], proj.means2d[ids, 1],

@@ -38,10 +38,10 @@ class RenderOptions:
     near_plane        metres; Gaussians with camera z <= near_plane are dropped
     far_plane         metres; Gaussians with camera z >= far_plane are dropped (keeps float32 finite)
     k_sigma           k-sigma bound (tile binning, centre-sample cut, EAA clipping)
-    eaa_max_nodes     EAA node cap n_max (1 = undilated point sampling everywhere)
-    eaa_gamma         EAA anisotropy growth: n = n_size (1 + gamma ln kappa)
+    eaa_max_nodes     EAA node cap n_max (1 = one moment-matched node everywhere)
+    eaa_gamma         EAA anisotropy growth of a sub-pixel splat: n = 2 (1 + gamma ln kappa)
     eaa_eta, eaa_tau  EAA boundary emphasis b(d) = 1 + eta exp(-d / tau) (tau in pixels)
-    eaa_point_area    sigma1*sigma2 (px^2) from which a Gaussian is "large" (1 node if also round)
+    eaa_single_node_sigma  minor-axis std-dev (px) from which a Gaussian takes 1 node, moment-matched to the pixel
     filter_3d_scale   Mip-Splatting 3D filter strength s (None or 0 = off; the paper uses 0.2)
     max_sampling_rate [N] px/metre per Gaussian for the 3D filter (None: max(fx, fy) / z of this camera)
     pose_only         gradients for viewmat only: the Gaussian parameters are detached (tracking)
@@ -59,7 +59,7 @@ class RenderOptions:
     eaa_gamma: float = 0.5
     eaa_eta: float = 0.0
     eaa_tau: float = 0.25
-    eaa_point_area: float = 16.0
+    eaa_single_node_sigma: float = 1.0
     filter_3d_scale: float | None = None
     max_sampling_rate: torch.Tensor | None = None
     pose_only: bool = False
@@ -75,11 +75,11 @@ class RenderOptions:
             (self.far_plane > self.near_plane, "far_plane must be larger than near_plane (metres)"),
             (self.k_sigma > 0, "k_sigma must be positive"),
             (int(self.eaa_max_nodes) == self.eaa_max_nodes and self.eaa_max_nodes >= 1,
-             "eaa_max_nodes must be an integer >= 1 (1 = point value)"),
+             "eaa_max_nodes must be an integer >= 1 (1 = one node everywhere)"),
             (self.eaa_gamma >= 0, "eaa_gamma must be >= 0"),
             (self.eaa_eta >= 0, "eaa_eta must be >= 0"),
             (self.eaa_tau > 0, "eaa_tau must be positive (pixels)"),
-            (self.eaa_point_area > 0, "eaa_point_area must be positive (px^2)"),
+            (self.eaa_single_node_sigma >= 0, "eaa_single_node_sigma must be >= 0 (px)"),
             (self.filter_3d_scale is None or self.filter_3d_scale >= 0, "filter_3d_scale must be >= 0 or None"),
             (self.exact_order >= 1, "exact_order must be >= 1"),
             (self.tile_size >= 1, "tile_size must be >= 1"),
@@ -247,7 +247,7 @@ def rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width: 
         max_sampling_rate=opts.max_sampling_rate)
     settings = FootprintSettings(mode=mode, k_sigma=opts.k_sigma, max_nodes=int(opts.eaa_max_nodes),
                                  gamma=opts.eaa_gamma, eta=opts.eaa_eta, tau=opts.eaa_tau,
-                                 point_area=opts.eaa_point_area, exact_order=opts.exact_order)
+                                 single_node_sigma=opts.eaa_single_node_sigma, exact_order=opts.exact_order)
     image = rasterizer(proj, width, height, settings, tile_size=opts.tile_size, pair_budget=opts.pair_budget,
                        checkpoint=opts.checkpoint)
     depth_normalized = None

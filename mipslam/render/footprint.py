@@ -13,7 +13,8 @@ Modes (DESIGN.md "Renderer contract"; docs/renderer.md has the full EAA specific
 * ``mip``    Mip-Splatting 2D filter: ``Sigma + 0.1 I``, opacity times ``sqrt(det Sigma / det(Sigma + 0.1 I))``.
 * ``ewa``    EWA resampling filter (Zwicker et al. 2001): ``Sigma + I``, same energy-preserving factor.
 * ``eaa``    Elliptical Adaptive Anti-aliasing: the box integral ``o * int_pixel G`` by adaptive,
-             geometry-aligned, importance-weighted quadrature (:func:`eaa_pixel_opacity`).
+             geometry-aligned, importance-weighted quadrature (:func:`eaa_pixel_opacity`); a splat
+             at least a pixel wide takes one node moment-matched to the box (``Sigma + I / 12``).
 * ``exact``  the same box integral by dense Gauss-Legendre quadrature (:func:`exact_pixel_opacity`).
 
 The centre-sample modes are cut at the k-sigma ellipse (Mahalanobis distance > k gives 0), so an
@@ -32,6 +33,8 @@ MODES = ("point", "mip", "ewa", "eaa", "exact")
 MODE_DILATION = {"point": 0.3, "mip": 0.1, "ewa": 1.0}
 #: Modes whose dilation comes with the energy-preserving opacity factor sqrt(det S / det(S + dI)).
 ENERGY_PRESERVING = ("mip", "ewa")
+#: Variance (px^2) of the unit pixel box along each axis: EAA's single node adds it (moment matching).
+EAA_BOX_VARIANCE = 1.0 / 12.0
 #: Order of the Gauss-Legendre rule per axis in ``exact`` mode and its clipping bound in sigmas.
 #: GL-20 on [-6, 6] integrates a unit Gaussian to 3e-8 relative; the mass beyond 6 sigma is 2e-9.
 EXACT_ORDER = 20
@@ -122,14 +125,14 @@ def _outer_band(p_o, mu_o, sigma_o, k_sigma: float):
 # EAA
 # ----------------------------------------------------------------------------------------------
 def eaa_node_counts(cov_xx, cov_xy, cov_yy, cov_det, *, max_nodes: int, gamma: float,
-                    point_area: float) -> torch.Tensor:
+                    single_node_sigma: float) -> torch.Tensor:
     """Adaptive EAA node count per Gaussian (integer, no gradient).  [N] each -> [N] int64
 
-    ``r = sigma1 * sigma2 = sqrt(det Sigma)`` (px^2, the 1-sigma ellipse area over pi, against the
-    unit pixel area) and ``kappa = sigma1 / sigma2``;
-    ``n_size = 1 if r >= point_area else 2``;
-    ``n = clamp(floor(n_size * (1 + gamma * ln kappa) + 1/2), 1, max_nodes)``.
-    So a large round splat takes 1 node (the point value), everything smaller or elongated at least 2.
+    With ``lambda_minor`` the smaller eigenvalue of Sigma (px^2) and ``kappa = sigma1 / sigma2``:
+    ``n = 1`` where ``lambda_minor >= single_node_sigma^2`` (every pixel-axis marginal is then at least
+    that wide, and one node moment-matched to the pixel box is within ~1e-3 of the integral:
+    :func:`eaa_single_node_footprint`); elsewhere ``n = clamp(floor(2 (1 + gamma ln kappa) + 1/2), 1,
+    max_nodes)``: a sub-pixel splat takes 2 rows, more as it stretches.
     """
     with torch.no_grad():
         half_trace = 0.5 * (cov_xx + cov_yy)
@@ -137,18 +140,51 @@ def eaa_node_counts(cov_xx, cov_xy, cov_yy, cov_det, *, max_nodes: int, gamma: f
         lambda_major = half_trace + radius
         lambda_minor = cov_det / lambda_major  # accurate for thin splats, unlike half_trace - radius
         kappa = torch.sqrt(lambda_major / lambda_minor).clamp_min(1.0)
-        area = torch.sqrt(cov_det)
-        n_size = torch.where(area >= point_area, torch.ones_like(area), torch.full_like(area, 2.0))
-        n = torch.floor(n_size * (1.0 + gamma * torch.log(kappa)) + 0.5)
+        n = torch.floor(2.0 * (1.0 + gamma * torch.log(kappa)) + 0.5)
         n = torch.nan_to_num(n, nan=float(max_nodes), posinf=float(max_nodes))
+        n = torch.where(lambda_minor >= single_node_sigma * single_node_sigma, torch.ones_like(n), n)
         return n.clamp(1, max_nodes).to(torch.int64)
+
+
+def eaa_single_node_footprint(cov_xx, cov_xy, cov_yy, cov_det, opacity, node_counts):
+    """Covariance and opacity EAA samples with: 1-node Gaussians moment-matched to the pixel box.
+
+    The box integral ``o int_pixel G`` is ``o 2 pi sqrt(det Sigma)`` times the density of ``G * box`` at
+    the pixel centre. The unit box has covariance ``I / 12``, so to second order that density is a
+    Gaussian's with ``Sigma + I / 12``: a single node samples ``Sigma' = Sigma + I / 12`` with opacity
+    ``o sqrt(det Sigma / det Sigma')`` (the error is the box's fourth cumulant, O(1 / (120 sigma^4))
+    relative: below 1e-3 from sigma ~ 1 px on, and the value tends to the point value as sigma grows).
+    Gaussians with 2 or more nodes keep the raw covariance and opacity (the rows integrate the box).
+    [N] each -> (xx, xy, yy, det, opacity) [N] each.
+    """
+    xx, xy, yy, det = dilate_covariance(cov_xx, cov_xy, cov_yy, cov_det, EAA_BOX_VARIANCE)
+    single = node_counts <= 1
+    matched = opacity * torch.sqrt(cov_det / det)
+    return (torch.where(single, xx, cov_xx), cov_xy, torch.where(single, yy, cov_yy),
+            torch.where(single, det, cov_det), torch.where(single, matched, opacity))
+
+
+def mode_footprint(mode: str, cov_xx, cov_xy, cov_yy, cov_det, opacity, *, max_nodes: int = 1,
+                   gamma: float = 0.0, single_node_sigma: float = 1.0):
+    """What a mode samples with, per Gaussian: covariance, opacity and node count.
+
+    :func:`footprint_parameters` for every mode, then for ``eaa`` the node counts of the raw covariance
+    (:func:`eaa_node_counts`) and the moment-matched single node (:func:`eaa_single_node_footprint`);
+    node counts are 1 for the other modes. [N] each -> (xx, xy, yy, det, opacity) [N] each, nodes [N] int64.
+    """
+    xx, xy, yy, det, opacity = footprint_parameters(mode, cov_xx, cov_xy, cov_yy, cov_det, opacity)
+    if mode != "eaa":
+        return xx, xy, yy, det, opacity, torch.ones(xx.shape, dtype=torch.int64, device=xx.device)
+    nodes = eaa_node_counts(xx, xy, yy, det, max_nodes=max_nodes, gamma=gamma, single_node_sigma=single_node_sigma)
+    return (*eaa_single_node_footprint(xx, xy, yy, det, opacity, nodes), nodes)
 
 
 def eaa_pixel_opacity(pix_x, pix_y, mean_x, mean_y, cov_xx, cov_xy, cov_yy, cov_det, opacity,
                       node_counts, *, row_capacity: int, k_sigma: float, eta: float, tau: float) -> torch.Tensor:
     """EAA estimate of ``o * int_pixel G(x) dx`` (docs/renderer.md, "EAA").
 
-    * ``node_counts == 1``: the undilated centre sample ``o * G(p)`` (cut at the k-sigma ellipse).
+    * ``node_counts == 1``: the centre sample ``o * G(p)`` of the given covariance (cut at the k-sigma
+      ellipse); callers pass the moment-matched one (:func:`eaa_single_node_footprint`).
     * ``node_counts = n >= 2``: n rows (nodes) along the outer axis at the midpoints of n equal strata of
       the pixel's outer extent clipped to ``mu_o +- k sigma_o``; on each row the inner integral of the
       conditional Gaussian over the pixel is closed form (``R_j``, a difference of two normal CDFs);

@@ -42,7 +42,7 @@ class FootprintSettings:
     gamma: float
     eta: float
     tau: float
-    point_area: float
+    single_node_sigma: float
     exact_order: int
 
 
@@ -174,15 +174,13 @@ def rasterize_projected(proj: ProjectedGaussians, width: int, height: int, setti
     mean = proj.means2d[ids]
     cov_xx, cov_xy, cov_yy = proj.cov2d[ids].unbind(-1)
     cov_det = proj.cov_det[ids]
-    cov_xx, cov_xy, cov_yy, cov_det, opacity = footprint.footprint_parameters(
-        settings.mode, cov_xx, cov_xy, cov_yy, cov_det, proj.opacities[ids])
+    cov_xx, cov_xy, cov_yy, cov_det, opacity, node_counts = footprint.mode_footprint(
+        settings.mode, cov_xx, cov_xy, cov_yy, cov_det, proj.opacities[ids], max_nodes=settings.max_nodes,
+        gamma=settings.gamma, single_node_sigma=settings.single_node_sigma)
     if settings.mode == "eaa":
-        node_counts = footprint.eaa_node_counts(cov_xx, cov_xy, cov_yy, cov_det, max_nodes=settings.max_nodes,
-                                                gamma=settings.gamma, point_area=settings.point_area)
         row_capacity = int(node_counts.max()) if node_counts.numel() else 1
         work = max(1, row_capacity)  # rows run on the support pairs only (a fraction of the dense pairs)
     else:
-        node_counts = torch.ones_like(ids)
         row_capacity = 1
         work = max(1, settings.exact_order ** 2 // 4) if settings.mode == "exact" else 1
     settings_batch = FootprintSettings(**{**settings.__dict__, "max_nodes": max(1, row_capacity)})

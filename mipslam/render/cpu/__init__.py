@@ -2,7 +2,7 @@
 hand-written backward (docs/renderer.md, "CPU backend").
 
 Split as in gsplat: the projection (:func:`mipslam.render.projection.project_gaussians`), the footprint
-parameters of each mode (:func:`mipslam.render.footprint.footprint_parameters`) and the EAA node counts
+parameters of each mode and EAA node counts (:func:`mipslam.render.footprint.mode_footprint`)
 stay in torch, shared with the torch backend line for line, so autograd carries the gradient from the
 projected quantities to the 3D parameters and the viewmat. The extension receives, per Gaussian,
 
@@ -332,13 +332,13 @@ def unsupported_reason(means: torch.Tensor, colors: torch.Tensor, mode: str, opt
 # Order of the parameter vector of projection.h (enum ProjectionParam).
 _PROJECTION_PARAM_NAMES = (
     "near", "far", "extent_sigma", "extent_pad", "extent_dilation", "filter_scale", "dilation", "dilation_sq",
-    "energy", "eaa", "max_nodes", "gamma", "point_area", "radius_sigma", "radius_pad", "cov_floor", "cov_floor_sq",
+    "energy", "eaa", "max_nodes", "gamma", "single_node_sigma", "box_variance", "radius_sigma", "radius_pad", "cov_floor", "cov_floor_sq",
     "fov_margin", "max_sigma_px", "max_tangent")
 
 
 @functools.lru_cache(maxsize=64)
 def _projection_params(mode: str, near_plane: float, far_plane: float, k_sigma: float, filter_3d_scale: float,
-                       max_nodes: int, gamma: float, point_area: float) -> tuple[float, ...]:
+                       max_nodes: int, gamma: float, single_node_sigma: float) -> tuple[float, ...]:
     """The settings of the fused projection for one mode and option set, exactly as
     :func:`mipslam.render.rasterize_torch` passes them to the torch reference (cached per option set)."""
     box_mode = mode in ("eaa", "exact")
@@ -350,7 +350,8 @@ def _projection_params(mode: str, near_plane: float, far_plane: float, k_sigma: 
         "filter_scale": float(filter_3d_scale or 0.0),
         "dilation": dilation, "dilation_sq": dilation * dilation,
         "energy": 1.0 if mode in footprint.ENERGY_PRESERVING else 0.0, "eaa": 1.0 if mode == "eaa" else 0.0,
-        "max_nodes": float(max_nodes), "gamma": gamma, "point_area": point_area,
+        "max_nodes": float(max_nodes), "gamma": gamma, "single_node_sigma": single_node_sigma,
+        "box_variance": footprint.EAA_BOX_VARIANCE,
         "radius_sigma": k_sigma, "radius_pad": 0.5 if box_mode else 0.0,
         "cov_floor": projection.COV_FLOOR, "cov_floor_sq": projection.COV_FLOOR * projection.COV_FLOOR,
         "fov_margin": projection.FOV_MARGIN, "max_sigma_px": projection.MAX_SIGMA_PX,
@@ -362,7 +363,7 @@ def _projection_params(mode: str, near_plane: float, far_plane: float, k_sigma: 
 def _params_for(mode: str, options) -> tuple[float, ...]:
     return _projection_params(mode, float(options.near_plane), float(options.far_plane), float(options.k_sigma),
                               float(options.filter_3d_scale or 0.0), int(options.eaa_max_nodes),
-                              float(options.eaa_gamma), float(options.eaa_point_area))
+                              float(options.eaa_gamma), float(options.eaa_single_node_sigma))
 
 
 class ProjectFootprints(torch.autograd.Function):
@@ -385,10 +386,12 @@ class ProjectFootprints(torch.autograd.Function):
         ctx.settings = (width, height, params, threads)
         ctx.set_materialize_grads(False)
         ctx.mark_non_differentiable(node_counts, visible, radii)
-        # The mode's opacity depends on the geometry only through the energy factor or the 3D filter; without
-        # them and without an opacity gradient it is a constant, so the rasterizer skips its opacity sums.
+        # The mode's opacity depends on the geometry only through an energy factor (mip, ewa, EAA's single
+        # node) or the 3D filter; without them and without an opacity gradient it is a constant, so the
+        # rasterizer skips its opacity sums.
         needs = ctx.needs_input_grad
         geometric = params[_PROJECTION_PARAM_NAMES.index("energy")] != 0.0 \
+            or params[_PROJECTION_PARAM_NAMES.index("eaa")] != 0.0 \
             or params[_PROJECTION_PARAM_NAMES.index("filter_scale")] != 0.0
         if not (needs[3] or (geometric and (any(needs[:3]) or needs[4]))):
             ctx.mark_non_differentiable(opacity)
@@ -443,26 +446,20 @@ def project_footprints(means, quats, scales, opacities, colors, viewmat, K, widt
     return FootprintProjection(*out)
 
 
-def _torch_footprints(proj, mode: str, max_nodes: int, gamma: float, point_area: float):
+def _torch_footprints(proj, mode: str, max_nodes: int, gamma: float, single_node_sigma: float):
     """The torch footprint parameters of projected Gaussians and their EAA node counts (1 outside eaa).
 
     -> xx, xy, yy, det [N] (the mode's sampling covariance), opacity [N], node counts [N] int64
     """
-    xx, xy, yy, det, opacity = footprint.footprint_parameters(mode, *proj.cov2d.unbind(-1), proj.cov_det,
-                                                              proj.opacities)
-    if mode == "eaa":
-        nodes = footprint.eaa_node_counts(xx, xy, yy, det, max_nodes=int(max_nodes), gamma=gamma,
-                                          point_area=point_area)
-    else:
-        nodes = torch.ones_like(opacity, dtype=torch.int64)
-    return xx, xy, yy, det, opacity, nodes
+    return footprint.mode_footprint(mode, *proj.cov2d.unbind(-1), proj.cov_det, proj.opacities,
+                                    max_nodes=int(max_nodes), gamma=gamma, single_node_sigma=single_node_sigma)
 
 
 def reference_footprints(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, *, mode: str,
                          options) -> FootprintProjection:
     """What :func:`project_footprints` computes, in torch (the readable reference):
     :func:`~mipslam.render.projection.project_gaussians` with the mode's extent, then
-    :func:`~mipslam.render.footprint.footprint_parameters`, :func:`~mipslam.render.footprint.eaa_node_counts`
+    :func:`~mipslam.render.footprint.mode_footprint`
     and the radii of :func:`mipslam.render.rasterize_torch`."""
     box_mode = mode in ("eaa", "exact")
     dilation = footprint.MODE_DILATION.get(mode, 0.0)
@@ -472,7 +469,7 @@ def reference_footprints(means, quats, scales, opacities, colors, viewmat, K, wi
         extent_pad=0.5 if box_mode else 0.0, extent_dilation=dilation, filter_3d_scale=options.filter_3d_scale,
         max_sampling_rate=options.max_sampling_rate)
     xx, xy, yy, det, opacity, nodes = _torch_footprints(proj, mode, options.eaa_max_nodes, options.eaa_gamma,
-                                                        options.eaa_point_area)
+                                                        options.eaa_single_node_sigma)
     with torch.no_grad():
         ext = options.k_sigma * torch.sqrt(torch.maximum(proj.cov2d[:, 0], proj.cov2d[:, 2]) + dilation)
         radii = torch.where(proj.visible, ext + (0.5 if box_mode else 0.0), torch.zeros_like(ext))
@@ -559,7 +556,7 @@ def rasterize_projected(proj, width: int, height: int, settings, **_unused) -> C
     if mode not in MODE_IDS:
         raise RenderError(f"rasterize (cpu backend): unknown mode '{mode}'")
     xx, xy, yy, det, opacity, node_counts = _torch_footprints(proj, mode, settings.max_nodes, settings.gamma,
-                                                              settings.point_area)
+                                                              settings.single_node_sigma)
     gl_nodes, gl_weights = _gauss_legendre_f32(settings.exact_order if mode == "exact" else 1)
     cov = torch.stack([xx, xy, yy, det], -1)
     color, depth, alpha, stats = RasterizeProjected.apply(

@@ -46,7 +46,8 @@ enum ProjectionParam : int {
     P_EAA,           // 1: compute EAA node counts
     P_MAX_NODES,
     P_GAMMA,
-    P_POINT_AREA,
+    P_SINGLE_NODE_SIGMA,  // EAA: minor-axis std-dev (px) from which a Gaussian takes 1 node
+    P_BOX_VARIANCE,       // EAA: variance of the unit pixel box (1/12 px^2), added to a 1-node Gaussian
     P_RADIUS_SIGMA,
     P_RADIUS_PAD,
     P_COV_FLOOR,
@@ -77,7 +78,8 @@ struct ProjectionSettings {
     T dilation, dilation_sq;
     bool energy, eaa;
     int max_nodes;
-    T gamma, point_area;
+    T gamma, single_node_var;   // single_node_var = single_node_sigma^2 (px^2)
+    T box_variance, box_variance_sq;
     T radius_sigma, radius_pad;
 };
 
@@ -253,29 +255,47 @@ struct Footprint {
     int32_t nodes;
 };
 
+// EAA node count of a sampling covariance (footprint.eaa_node_counts, same operation order).
+template <typename T>
+static inline int32_t eaa_node_count(const ProjectionSettings<T>& S, T xx, T xy, T yy, T det) {
+    const T half_trace = T(0.5) * (xx + yy);
+    const T half_diff = T(0.5) * (xx - yy);
+    const T radius = std::sqrt(half_diff * half_diff + xy * xy);
+    const T lambda_major = half_trace + radius;
+    const T lambda_minor = det / lambda_major;
+    T kappa = std::sqrt(lambda_major / lambda_minor);
+    kappa = kappa < T(1) ? T(1) : kappa;  // clamp_min keeps NaN
+    T n = std::floor(T(2) * (T(1) + S.gamma * std::log(kappa)) + T(0.5));
+    if (std::isnan(n) || n == std::numeric_limits<T>::infinity()) n = T(S.max_nodes);
+    if (lambda_minor >= S.single_node_var) n = T(1);
+    n = std::min(std::max(n, T(1)), T(S.max_nodes));
+    return (int32_t)n;
+}
+
+// The dilation a Gaussian is sampled with: the mode's, or for an EAA 1-node Gaussian the pixel box's
+// variance (footprint.eaa_single_node_footprint); both with their energy factor where the mode has one.
+template <typename T>
+struct Dilation {
+    T d, d_sq;
+    bool energy;
+};
+
+template <typename T>
+static inline Dilation<T> dilation_of(const ProjectionSettings<T>& S, int32_t nodes) {
+    if (S.eaa && nodes <= 1) return {S.box_variance, S.box_variance_sq, true};
+    return {S.dilation, S.dilation_sq, S.energy};
+}
+
 template <typename T>
 static inline Footprint<T> footprint_of(const ProjectionSettings<T>& S, T xx, T xy, T yy, T det, T opacity) {
     Footprint<T> f{xx, xy, yy, det, opacity, 1};
-    if (S.dilation != T(0)) {
-        f.det = det + S.dilation * (xx + yy) + S.dilation_sq;
-        f.xx = xx + S.dilation;
-        f.yy = yy + S.dilation;
-        if (S.energy) f.opacity = opacity * std::sqrt(det / f.det);
-    }
-    if (S.eaa) {
-        const T half_trace = T(0.5) * (f.xx + f.yy);
-        const T half_diff = T(0.5) * (f.xx - f.yy);
-        const T radius = std::sqrt(half_diff * half_diff + f.xy * f.xy);
-        const T lambda_major = half_trace + radius;
-        const T lambda_minor = f.det / lambda_major;
-        T kappa = std::sqrt(lambda_major / lambda_minor);
-        kappa = kappa < T(1) ? T(1) : kappa;  // clamp_min keeps NaN
-        const T area = std::sqrt(f.det);
-        const T n_size = area >= S.point_area ? T(1) : T(2);
-        T n = std::floor(n_size * (T(1) + S.gamma * std::log(kappa)) + T(0.5));
-        if (std::isnan(n) || n == std::numeric_limits<T>::infinity()) n = T(S.max_nodes);
-        n = std::min(std::max(n, T(1)), T(S.max_nodes));
-        f.nodes = (int32_t)n;
+    if (S.eaa) f.nodes = eaa_node_count(S, xx, xy, yy, det);  // eaa has no mode dilation: the raw covariance
+    const Dilation<T> D = dilation_of(S, f.nodes);
+    if (D.d != T(0)) {
+        f.det = det + D.d * (xx + yy) + D.d_sq;
+        f.xx = xx + D.d;
+        f.yy = yy + D.d;
+        if (D.energy) f.opacity = opacity * std::sqrt(det / f.det);
     }
     return f;
 }
@@ -292,13 +312,14 @@ template <typename T>
 static inline void project_row_backward(const ProjectionSettings<T>& S, const ProjectedRow<T>& r, T gu, T gv,
                                         T gdepth, T gfxx, T gfxy, T gfyy, T gfdet, T gfo, bool need_params,
                                         bool need_viewmat, double* gW, double* gt, RowGrads<T>* out) {
-    // footprint_parameters
+    // footprint_parameters / eaa_single_node_footprint
     T g_xx = gfxx, g_yy = gfyy, g_xy = gfxy, g_det = gfdet, g_o = gfo;
-    if (S.dilation != T(0)) {
-        const T fdet = r.det + S.dilation * (r.xx + r.yy) + S.dilation_sq;
+    const Dilation<T> D = dilation_of(S, S.eaa ? eaa_node_count(S, r.xx, r.xy, r.yy, r.det) : int32_t(1));
+    if (D.d != T(0)) {
+        const T fdet = r.det + D.d * (r.xx + r.yy) + D.d_sq;
         T g_fdet = gfdet;
         g_det = T(0);
-        if (S.energy) {
+        if (D.energy) {
             const T ratio = r.det / fdet;
             const T sq = std::sqrt(ratio);
             g_o = gfo * sq;
@@ -307,8 +328,8 @@ static inline void project_row_backward(const ProjectionSettings<T>& S, const Pr
             g_fdet += -g_ratio * r.det / (fdet * fdet);
         }
         g_det += g_fdet;
-        g_xx += S.dilation * g_fdet;
-        g_yy += S.dilation * g_fdet;
+        g_xx += D.d * g_fdet;
+        g_yy += D.d * g_fdet;
     }
     // covariance with floor and the Cauchy-Binet determinant
     const T g_c00 = g_xx + S.cov_floor * g_det;
@@ -479,7 +500,9 @@ static ProjectionSettings<T> projection_settings(const at::Tensor& viewmat, cons
     S.eaa = p[P_EAA] != 0.0;
     S.max_nodes = (int)p[P_MAX_NODES];
     S.gamma = (T)p[P_GAMMA];
-    S.point_area = (T)p[P_POINT_AREA];
+    S.single_node_var = (T)(p[P_SINGLE_NODE_SIGMA] * p[P_SINGLE_NODE_SIGMA]);
+    S.box_variance = (T)p[P_BOX_VARIANCE];
+    S.box_variance_sq = (T)(p[P_BOX_VARIANCE] * p[P_BOX_VARIANCE]);
     S.radius_sigma = (T)p[P_RADIUS_SIGMA];
     S.radius_pad = (T)p[P_RADIUS_PAD];
     return S;
