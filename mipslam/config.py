@@ -372,6 +372,14 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
     raise ConfigError(f"config key '{key}': unsupported type {_type_name(tp)}")
 
 
+# Keys that existed once, with what replaced them (a clearer error than a near-miss suggestion).
+RETIRED_KEYS = {
+    "render.eaa_point_area": "retired: EAA's 1-node threshold is now 'render.eaa_single_node_sigma' "
+                             "(minor-axis std-dev in px, default 1.0; docs/renderer.md 2.2); delete the line or "
+                             "set the new key",
+}
+
+
 def _build(cls: type, data: Mapping[str, Any], prefix: str) -> Any:
     if not isinstance(data, Mapping):
         raise ConfigError(f"config key '{prefix.rstrip('.') or '<root>'}': expected a mapping, got {data!r}")
@@ -379,6 +387,8 @@ def _build(cls: type, data: Mapping[str, Any], prefix: str) -> Any:
     names = [f.name for f in dataclasses.fields(cls)]
     for key in data:
         if key not in names:
+            if f"{prefix}{key}" in RETIRED_KEYS:
+                raise ConfigError(f"config key '{prefix}{key}': {RETIRED_KEYS[f'{prefix}{key}']}")
             near = difflib.get_close_matches(str(key), names, n=1, cutoff=0.5)
             hint = f"; did you mean '{prefix}{near[0]}'?" if near else f"; valid keys: {', '.join(names)}"
             raise ConfigError(f"unknown config key '{prefix}{key}'{hint}")

@@ -55,6 +55,13 @@ def test_unknown_key_in_a_file_is_rejected(tmp_path):
         load_config(path)
 
 
+def test_a_retired_key_says_what_replaced_it(tmp_path):
+    path = tmp_path / "old_run_config.yaml"
+    path.write_text("render:\n  eaa_point_area: 16\n")
+    with pytest.raises(ConfigError, match=r"render\.eaa_point_area.*retired.*render\.eaa_single_node_sigma"):
+        load_config(path)
+
+
 @pytest.mark.parametrize(
     "override, message",
     [
