@@ -256,7 +256,8 @@ def tune_single_node_sigma():
     print(f"| setting | k | {header} | share of 1-node splats |")
     print("|" + "---|" * (len(bands) + 3))
     for k_sigma in (3.0, 8.0):
-        print(f"| mip | {k_sigma:g} | " + " | ".join(f"{1e4 * e:.1f}" for e in errors(k_sigma, mode="mip")) + " | 1.00 |")
+        mip_errors = errors(k_sigma, mode="mip")
+        print(f"| mip | {k_sigma:g} | " + " | ".join(f"{1e4 * e:.1f}" for e in mip_errors) + " | 1.00 |")
         for threshold in (0.5, 0.7, 0.8, 1.0, 1.5, 3.0, 1e9):
             share = (sigma_minor >= threshold).double().mean().item()
             name = "4 rows everywhere" if threshold > 100 else f"eaa_single_node_sigma={threshold:g}"

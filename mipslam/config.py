@@ -104,7 +104,7 @@ class RenderConfig:
     filter_3d_scale: float = 0.2
     # EAA constants: defaults measured against `exact` (docs/renderer.md, benchmarks/bench_aliasing.py).
     eaa_max_nodes: int = 4  # node cap n_max: the speed/accuracy knob (1 = point value)
-    eaa_gamma: float = 0.5  # node growth with anisotropy: n = n_size (1 + gamma ln kappa)
+    eaa_gamma: float = 0.5  # row growth of a sub-pixel splat with anisotropy: n = 2 (1 + gamma ln kappa)
     eaa_eta: float = 0.0  # boundary emphasis b(d) = 1 + eta exp(-d / tau)
     eaa_tau: float = 0.25  # pixels
     eaa_single_node_sigma: float = 1.0  # minor-axis std-dev (px) from which 1 moment-matched node suffices

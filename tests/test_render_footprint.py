@@ -163,16 +163,19 @@ def test_the_single_node_is_moment_matched_to_the_pixel_box():
     cxx, cxy, cyy, cdet, co, nodes = fp.mode_footprint("eaa", xx, xy, yy, det, o, max_nodes=4, gamma=0.5,
                                                        single_node_sigma=1.0)
     assert torch.all(nodes == 1)
-    single = fp.centre_sample_opacity(px, py, mx, my, cxx, cxy, cyy, cdet, co, wide)
-    errors = {"single": (single - exact).abs().sum(0).mean().item()}
-    for name in ("point", "mip"):
-        fxx, fxy, fyy, fdet, fo = fp.footprint_parameters("mip", xx, xy, yy, det, o) if name == "mip" \
-            else (xx, xy, yy, det, o)
-        errors[name] = (fp.centre_sample_opacity(px, py, mx, my, fxx, fxy, fyy, fdet, fo, wide) - exact).abs().sum(0).mean().item()
+
+    def error(value):  # summed over a splat's pixels, mean over the splats
+        return (value - exact).abs().sum(0).mean().item()
+
+    errors = {
+        "single": error(fp.centre_sample_opacity(px, py, mx, my, cxx, cxy, cyy, cdet, co, wide)),
+        "point": error(fp.centre_sample_opacity(px, py, mx, my, xx, xy, yy, det, o, wide)),  # undilated
+        "mip": error(fp.centre_sample_opacity(px, py, mx, my, *fp.footprint_parameters("mip", xx, xy, yy, det, o),
+                                              wide)),
+    }
     for rows in (2, 4):
-        value = fp.eaa_pixel_opacity(px, py, mx, my, xx, xy, yy, det, o, torch.full((n,), rows), row_capacity=rows,
-                                     k_sigma=wide, eta=0.0, tau=0.25)
-        errors[f"{rows} rows"] = (value - exact).abs().sum(0).mean().item()
+        errors[f"{rows} rows"] = error(fp.eaa_pixel_opacity(px, py, mx, my, xx, xy, yy, det, o, torch.full((n,), rows),
+                                                            row_capacity=rows, k_sigma=wide, eta=0.0, tau=0.25))
     assert errors["single"] < 0.1 * errors["mip"], errors
     assert errors["single"] < 0.02 * errors["point"], errors
     assert errors["single"] < errors["2 rows"] and errors["single"] < errors["4 rows"], errors

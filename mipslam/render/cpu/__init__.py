@@ -332,8 +332,8 @@ def unsupported_reason(means: torch.Tensor, colors: torch.Tensor, mode: str, opt
 # Order of the parameter vector of projection.h (enum ProjectionParam).
 _PROJECTION_PARAM_NAMES = (
     "near", "far", "extent_sigma", "extent_pad", "extent_dilation", "filter_scale", "dilation", "dilation_sq",
-    "energy", "eaa", "max_nodes", "gamma", "single_node_sigma", "box_variance", "radius_sigma", "radius_pad", "cov_floor", "cov_floor_sq",
-    "fov_margin", "max_sigma_px", "max_tangent")
+    "energy", "eaa", "max_nodes", "gamma", "single_node_sigma", "box_variance", "radius_sigma", "radius_pad",
+    "cov_floor", "cov_floor_sq", "fov_margin", "max_sigma_px", "max_tangent")
 
 
 @functools.lru_cache(maxsize=64)
