@@ -125,12 +125,21 @@ class RenderConfig:
 @dataclass(frozen=True)
 class TrackingConfig:
     iterations: int = 40
+    # adam: every step moves each pose coordinate by about lr_* (m, rad) until the end. rprop: lr_* is
+    # each coordinate's first step; it grows 1.2x while the coordinate's gradient keeps its sign and
+    # halves when it flips, so a good motion-model pose is refined in small steps and a level stops once
+    # the steps fall below convergence_threshold. The fast and balanced presets use rprop (lr 5e-4 / 1e-3,
+    # threshold 1e-4: half of adam's tracking time at 320x240, docs/bench.md "Session 7"). adam stays the
+    # default: at 40x30 with 15 iterations rprop's growing steps lag a 2 cm/frame motion.
+    optimizer: Literal["adam", "rprop"] = "adam"
     lr_translation: float = 2e-3
     lr_rotation: float = 4e-3
+    rprop_max_step_ratio: float = 50.0  # rprop: a coordinate's step never exceeds lr * this
     # Adam's steps stay near lr until it stops, which leaves the pose jittering by about lr; decaying the
-    # rate geometrically to lr * lr_final_ratio over each level's iterations lets it settle.
+    # rate geometrically to lr * lr_final_ratio over each level's iterations lets it settle (adam only).
     lr_final_ratio: float = 1.0
-    convergence_threshold: float = 1e-5  # stop when the pose update (se3 norm) is below this
+    # Stop a level when the pose update (se3 norm; rprop: the norm of its next steps) is below this.
+    convergence_threshold: float = 1e-5
     alpha_color: float = 0.5  # weight of the photometric term against depth
     coarse_to_fine: tuple[float, ...] = ()  # e.g. (0.5,) tracks at half resolution first
     use_exposure: bool = False
@@ -147,6 +156,7 @@ class TrackingConfig:
         _check(0 <= self.alpha_color <= 1, "tracking.alpha_color", "must be in [0, 1]")
         _check(self.lr_translation > 0 and self.lr_rotation > 0, "tracking.lr_*", "learning rates must be positive")
         _check(0 < self.lr_final_ratio <= 1, "tracking.lr_final_ratio", "must be in (0, 1] (1 = constant rate)")
+        _check(self.rprop_max_step_ratio >= 1, "tracking.rprop_max_step_ratio", "must be >= 1")
         _check(all(0 < s <= 1 for s in self.coarse_to_fine), "tracking.coarse_to_fine", "scales must be in (0, 1]")
         _check(0 <= self.min_valid_fraction <= 1, "tracking.min_valid_fraction", "must be in [0, 1]")
         _check(0 <= self.gradient_mask_percentile < 100, "tracking.gradient_mask_percentile", "must be in [0, 100)")

@@ -126,7 +126,7 @@ class Tracker:
         if cfg.use_exposure:
             exposure = torch.zeros(2, device=device, dtype=dtype, requires_grad=True)
             groups.append({"params": [exposure], "lr": cfg.lr_rotation})
-        optimizer = torch.optim.Adam(groups)
+        optimizer = _pose_optimizer(cfg, groups)
 
         iterations = 0
         best_loss, best = math.inf, (torch.zeros(6, dtype=dtype, device=device), None)
@@ -153,7 +153,7 @@ class Tracker:
                 optimizer.step()
                 iterations += 1
                 step = float((torch.cat([rho, phi]).detach() - before).norm())
-                if step < cfg.convergence_threshold:
+                if _converged(optimizer, step, cfg.convergence_threshold):
                     break
 
         # Evaluate the best pose once more at full resolution: its loss and valid-pixel count decide success.
@@ -178,6 +178,28 @@ class Tracker:
     def _failed(T_wc_init: torch.Tensor, iterations: int, status: str, loss: float, valid_fraction: float) -> TrackingResult:
         return TrackingResult(T_wc_init.detach().to(torch.float64).cpu().clone(), torch.zeros(2), loss, iterations,
                               valid_fraction, False, status)
+
+
+def _pose_optimizer(cfg: TrackingConfig, groups: list[dict]) -> torch.optim.Optimizer:
+    """Adam, or Rprop (Riedmiller & Braun 1993) started at the configured rates and capped at
+    ``rprop_max_step_ratio`` times them; the etas are Rprop's published 0.5 / 1.2."""
+    if cfg.optimizer == "adam":
+        return torch.optim.Adam(groups)
+    for group in groups:
+        group["step_sizes"] = (0.0, group["lr"] * cfg.rprop_max_step_ratio)
+    return torch.optim.Rprop(groups, etas=(0.5, 1.2))
+
+
+def _converged(optimizer: torch.optim.Optimizer, update_norm: float, threshold: float) -> bool:
+    """Whether the pose has settled: its last update, or for Rprop the size of its next one.
+
+    Rprop leaves a coordinate in place on the step its gradient changes sign, so a zero update there
+    says nothing; the per-coordinate step sizes bound every later move and shrink as it converges.
+    """
+    if not isinstance(optimizer, torch.optim.Rprop):
+        return update_norm < threshold
+    sizes = [optimizer.state[p]["step_size"].flatten() for group in optimizer.param_groups for p in group["params"]]
+    return float(torch.cat(sizes).norm()) < threshold
 
 
 def initial_result(T_wc: torch.Tensor) -> TrackingResult:

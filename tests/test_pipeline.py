@@ -164,21 +164,49 @@ def test_densifying_a_view_the_map_already_holds_adds_no_copies(tiny_sequence):
     assert with_check <= 0.05 * without_check, (with_check, without_check)
 
 
-def test_tracking_recovers_a_known_pose_perturbation(tmp_path):
+@pytest.fixture(scope="module")
+def one_frame_map(tmp_path_factory):
     # 64x48: at 40x30 the map of one frame is too coarse to pin the pose to a few millimetres.
-    seq = tmp_path / "seq"
+    seq = tmp_path_factory.mktemp("track") / "seq"
     data_synth.generate(seq, layout="replica", trajectory="loop", width=64, height=48, frames=2, seed=0, supersample=2)
     config, sequence, gmap, _, _ = _map_of_first_frame(seq, 60)
+    g = gmap.activated()
+    detached = type(g)(*(t.detach() for t in (g.means, g.quats, g.scales, g.opacities, g.colors)))
+    return seq, config, sequence, detached
+
+
+# adam is the default; rprop as the fast and balanced presets set it.
+_OPTIMIZERS = {"adam": [], "rprop": ["tracking.optimizer=rprop", "tracking.lr_translation=5e-4",
+                                     "tracking.lr_rotation=1e-3", "tracking.convergence_threshold=1e-4"]}
+
+
+@pytest.mark.parametrize("optimizer", sorted(_OPTIMIZERS))
+def test_tracking_recovers_a_known_pose_perturbation(one_frame_map, optimizer):
+    seq, config, sequence, gaussians = one_frame_map
     frame = sequence[0]
     T_wc_true = sequence.gt_T_wc[0]
     perturbation = se3_exp(torch.tensor([0.015, -0.01, 0.01, 0.01, -0.015, 0.005], dtype=torch.float64))
     T_wc_init = T_wc_true @ perturbation
-    tracker = Tracker(tiny_config(seq, "tracking.iterations=80").tracking, config.render)
-    g = gmap.activated()
-    detached = type(g)(*(t.detach() for t in (g.means, g.quats, g.scales, g.opacities, g.colors)))
-    result = tracker.track(detached, frame, T_wc_init, running_loss=None)
+    tracker = Tracker(tiny_config(seq, "tracking.iterations=80", *_OPTIMIZERS[optimizer]).tracking, config.render)
+    result = tracker.track(gaussians, frame, T_wc_init, running_loss=None)
     assert result.ok
     error_before = se3_log(se3_inverse(T_wc_true) @ T_wc_init)
     error_after = se3_log(se3_inverse(T_wc_true) @ result.T_wc)
     assert error_after[:3].norm() < 0.3 * error_before[:3].norm(), (error_before, error_after)
     assert error_after[3:].norm() < 0.3 * error_before[3:].norm(), (error_before, error_after)
+
+
+def test_rprop_tracking_stops_early_at_the_pose_adam_reaches_with_every_iteration(one_frame_map):
+    # From the true pose, Rprop's steps halve at each sign change, so its next step falls below the
+    # threshold well before the cap; Adam keeps stepping by about lr and uses all 80. Both should settle at
+    # the same optimum of this coarse one-frame map (a few mm from the true pose).
+    seq, config, sequence, gaussians = one_frame_map
+    T_wc_true = sequence.gt_T_wc[0]
+    ends = {}
+    for name, extra in _OPTIMIZERS.items():
+        settings = tiny_config(seq, "tracking.iterations=80", *extra).tracking
+        result = Tracker(settings, config.render).track(gaussians, sequence[0], T_wc_true, running_loss=None)
+        assert result.ok
+        ends[name] = (result.iterations, se3_log(se3_inverse(T_wc_true) @ result.T_wc))
+    assert ends["rprop"][0] < 40 and ends["adam"][0] == 80, ends
+    assert (ends["rprop"][1] - ends["adam"][1]).norm() < 1e-3, ends
