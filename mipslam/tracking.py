@@ -2,7 +2,7 @@
 
 The pose is parametrised as a left increment in the camera frame,
 ``T_cw = exp(xi) T_cw_init`` with ``xi = [rho, phi]`` (se(3), translation first), and optimised with
-Adam on the loss of DESIGN.md ("Losses", tracking):
+Adam or Rprop (``tracking.optimizer``) on the loss of DESIGN.md ("Losses", tracking):
 ``alpha_c * mean(M_rgb |exposure(I) - I_gt|) + (1 - alpha_c) * mean(M_d |D - D_gt|)``,
 where the masks keep valid depth, rendered opacity >= ``opacity_threshold`` (pixels the map explains)
 and, for colour, pixels above an image-gradient percentile. Optional coarse-to-fine: the first
@@ -153,7 +153,7 @@ class Tracker:
                 optimizer.step()
                 iterations += 1
                 step = float((torch.cat([rho, phi]).detach() - before).norm())
-                if _converged(optimizer, step, cfg.convergence_threshold):
+                if _converged(optimizer, [rho, phi], step, cfg.convergence_threshold):
                     break
 
         # Evaluate the best pose once more at full resolution: its loss and valid-pixel count decide success.
@@ -190,15 +190,16 @@ def _pose_optimizer(cfg: TrackingConfig, groups: list[dict]) -> torch.optim.Opti
     return torch.optim.Rprop(groups, etas=(0.5, 1.2))
 
 
-def _converged(optimizer: torch.optim.Optimizer, update_norm: float, threshold: float) -> bool:
-    """Whether the pose has settled: its last update, or for Rprop the size of its next one.
+def _converged(optimizer: torch.optim.Optimizer, pose_params: list[torch.Tensor], update_norm: float,
+               threshold: float) -> bool:
+    """Whether the pose has settled: its last update (se3 norm), or for Rprop the size of its next one.
 
     Rprop leaves a coordinate in place on the step its gradient changes sign, so a zero update there
     says nothing; the per-coordinate step sizes bound every later move and shrink as it converges.
     """
     if not isinstance(optimizer, torch.optim.Rprop):
         return update_norm < threshold
-    sizes = [optimizer.state[p]["step_size"].flatten() for group in optimizer.param_groups for p in group["params"]]
+    sizes = [optimizer.state[p]["step_size"].flatten() for p in pose_params]  # [3] each
     return float(torch.cat(sizes).norm()) < threshold
 
 

@@ -77,6 +77,8 @@ def test_a_retired_key_says_what_replaced_it(tmp_path):
         ("tracking.lr_translation=fast", "expected a number"),
         ("tracking.lr_translation=nan", "expected a number"),
         ("tracking.lr_final_ratio=0", "tracking.lr_final_ratio"),
+        ("tracking.optimizer=sgd", "tracking.optimizer"),
+        ("tracking.rprop_max_step_ratio=0.5", "tracking.rprop_max_step_ratio"),
     ],
 )
 def test_wrong_types_and_out_of_range_values(override, message):

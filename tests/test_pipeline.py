@@ -180,14 +180,16 @@ _OPTIMIZERS = {"adam": [], "rprop": ["tracking.optimizer=rprop", "tracking.lr_tr
                                      "tracking.lr_rotation=1e-3", "tracking.convergence_threshold=1e-4"]}
 
 
-@pytest.mark.parametrize("optimizer", sorted(_OPTIMIZERS))
-def test_tracking_recovers_a_known_pose_perturbation(one_frame_map, optimizer):
+@pytest.mark.parametrize("optimizer,exposure", [("adam", False), ("rprop", False), ("rprop", True)])
+def test_tracking_recovers_a_known_pose_perturbation(one_frame_map, optimizer, exposure):
     seq, config, sequence, gaussians = one_frame_map
     frame = sequence[0]
     T_wc_true = sequence.gt_T_wc[0]
     perturbation = se3_exp(torch.tensor([0.015, -0.01, 0.01, 0.01, -0.015, 0.005], dtype=torch.float64))
     T_wc_init = T_wc_true @ perturbation
-    tracker = Tracker(tiny_config(seq, "tracking.iterations=80", *_OPTIMIZERS[optimizer]).tracking, config.render)
+    settings = tiny_config(seq, "tracking.iterations=80", f"tracking.use_exposure={str(exposure).lower()}",
+                           *_OPTIMIZERS[optimizer]).tracking
+    tracker = Tracker(settings, config.render)
     result = tracker.track(gaussians, frame, T_wc_init, running_loss=None)
     assert result.ok
     error_before = se3_log(se3_inverse(T_wc_true) @ T_wc_init)
