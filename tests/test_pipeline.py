@@ -175,9 +175,15 @@ def one_frame_map(tmp_path_factory):
     return seq, config, sequence, detached
 
 
-# adam is the default; rprop as the fast and balanced presets set it.
-_OPTIMIZERS = {"adam": [], "rprop": ["tracking.optimizer=rprop", "tracking.lr_translation=5e-4",
-                                     "tracking.lr_rotation=1e-3", "tracking.convergence_threshold=1e-4"]}
+def _preset_tracking_overrides(preset: str) -> list[str]:
+    """The preset's optimiser keys as overrides (read from configs/, so the tests follow a retune)."""
+    tracking = load_config(REPO / "configs" / "synthetic.yaml", preset=preset).tracking
+    keys = ("optimizer", "lr_translation", "lr_rotation", "convergence_threshold")
+    return [f"tracking.{key}={getattr(tracking, key)}" for key in keys]
+
+
+# adam is the default; rprop as the balanced preset sets it.
+_OPTIMIZERS = {"adam": [], "rprop": _preset_tracking_overrides("balanced")}
 
 
 @pytest.mark.parametrize("optimizer,exposure", [("adam", False), ("rprop", False), ("rprop", True)])
@@ -189,6 +195,7 @@ def test_tracking_recovers_a_known_pose_perturbation(one_frame_map, optimizer, e
     T_wc_init = T_wc_true @ perturbation
     settings = tiny_config(seq, "tracking.iterations=80", f"tracking.use_exposure={str(exposure).lower()}",
                            *_OPTIMIZERS[optimizer]).tracking
+    assert settings.optimizer == optimizer
     tracker = Tracker(settings, config.render)
     result = tracker.track(gaussians, frame, T_wc_init, running_loss=None)
     assert result.ok
