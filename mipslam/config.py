@@ -150,9 +150,14 @@ class TrackingConfig:
     # A frame whose loss stays above ratio * running level is aligned to the previous frame by RGB-D
     # odometry and tracked again from there (a jump, a bump, dropped frames); 0 turns it off.
     relocalise_loss_ratio: float = 1.3
+    # Each frame is tracked against the Gaussians that reach the image enlarged by this fraction of its
+    # larger side at the motion-model pose (0.25: about 16 degrees of a 70-degree view, far beyond what
+    # tracking moves); the rest of the map cannot be drawn and is left out of the projection.
+    frustum_margin: float = 0.25
 
     def __post_init__(self):
         _check(self.iterations >= 1, "tracking.iterations", "must be >= 1")
+        _check(self.frustum_margin >= 0, "tracking.frustum_margin", "must be >= 0 (a fraction of the image size)")
         _check(0 <= self.alpha_color <= 1, "tracking.alpha_color", "must be in [0, 1]")
         _check(self.lr_translation > 0 and self.lr_rotation > 0, "tracking.lr_*", "learning rates must be positive")
         _check(0 < self.lr_final_ratio <= 1, "tracking.lr_final_ratio", "must be in (0, 1] (1 = constant rate)")

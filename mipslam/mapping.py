@@ -35,7 +35,7 @@ from mipslam.gaussians import (
 )
 from mipslam.geometry.se3 import se3_exp, se3_inverse
 from mipslam.losses.frequency import frequency_loss
-from mipslam.losses.photometric import apply_affine_exposure, rgbd_l1_loss, rgbd_masks
+from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, rgbd_l1_loss, rgbd_masks
 from mipslam.losses.regularizers import isotropy_loss
 from mipslam.rendering import render_view
 from mipslam.types import Intrinsics
@@ -122,13 +122,19 @@ class Mapper:
 
     # ------------------------------------------------------------------ optimisation
 
-    def view_loss(self, gmap: GaussianMap, view: MappingView, T_cw: torch.Tensor) -> torch.Tensor:
-        """The mapping loss of one view (module docstring), differentiable w.r.t. the map and ``T_cw``."""
+    def view_loss(self, gmap: GaussianMap, view: MappingView, T_cw: torch.Tensor,
+                  masks: RGBDMasks | None = None) -> torch.Tensor:
+        """The mapping loss of one view (module docstring), differentiable w.r.t. the map and ``T_cw``.
+
+        ``masks``: the view's :func:`rgbd_masks` when the caller already has them (they depend on the
+        targets alone, so :meth:`optimize` builds them once per view).
+        """
         cfg = self.config
         g = gmap.activated()
         out = render_view(g, T_cw, view.intrinsics, self.render_config)
         color = apply_affine_exposure(out.color, view.exposure[0], view.exposure[1])
-        masks = rgbd_masks(view.color, view.depth)
+        if masks is None:
+            masks = rgbd_masks(view.color, view.depth)
         loss = rgbd_l1_loss(color, out.depth, view.color, view.depth, alpha_color=cfg.alpha_color, masks=masks).total
         if cfg.isotropy_weight > 0:
             loss = loss + cfg.isotropy_weight * isotropy_loss(g.scales)
@@ -146,6 +152,7 @@ class Mapper:
                        for i, v in enumerate(views) if v.optimize_pose and self.config.lr_poses > 0}
         pose_optimizer = torch.optim.Adam(list(pose_deltas.values()), lr=self.config.lr_poses) if pose_deltas else None
         first = last = math.nan
+        masks: dict[int, RGBDMasks] = {}
         for step in range(iterations):
             if step % 2 == 0 or len(views) == 1:
                 index = 0
@@ -154,7 +161,9 @@ class Mapper:
             T_cw = T_cw_init[index]
             if index in pose_deltas:
                 T_cw = se3_exp(pose_deltas[index]) @ T_cw
-            loss = self.view_loss(gmap, views[index], T_cw)
+            if index not in masks:
+                masks[index] = rgbd_masks(views[index].color, views[index].depth)
+            loss = self.view_loss(gmap, views[index], T_cw, masks[index])
             if not torch.isfinite(loss):
                 break  # never step on a non-finite loss: the map keeps its last finite state
             optimizer.zero_grad()

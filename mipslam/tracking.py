@@ -23,8 +23,8 @@ from mipslam.config import RenderConfig, TrackingConfig
 from mipslam.evaluation.image_metrics import resize_area
 from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry.se3 import se3_exp, se3_inverse
-from mipslam.losses.photometric import apply_affine_exposure, image_gradient_mask, rgbd_l1_loss, rgbd_masks
-from mipslam.rendering import render_view
+from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, image_gradient_mask, rgbd_l1_loss, rgbd_masks
+from mipslam.rendering import frustum_subset, render_view
 from mipslam.types import Frame, Intrinsics
 
 # Fraction of the iteration budget given to the coarse levels (split evenly between them).
@@ -68,7 +68,7 @@ class _Level:
     intrinsics: Intrinsics
     color: torch.Tensor  # [h, w, 3]
     depth: torch.Tensor  # [h, w]
-    gradient_mask: torch.Tensor  # [h, w] bool
+    target_masks: RGBDMasks  # [h, w] bool each: valid targets (and the gradient mask), before the opacity test
     iterations: int
 
 
@@ -96,14 +96,14 @@ class Tracker:
                 iterations = per_coarse
             if iterations <= 0:
                 continue
-            levels.append(_Level(intrinsics, color, depth, image_gradient_mask(color, cfg.gradient_mask_percentile),
-                                 iterations))
+            target_masks = rgbd_masks(color, depth,
+                                      extra_color_mask=image_gradient_mask(color, cfg.gradient_mask_percentile))
+            levels.append(_Level(intrinsics, color, depth, target_masks, iterations))
         return levels
 
     def _loss(self, gaussians: ActivatedGaussians, T_cw: torch.Tensor, level: _Level, exposure: torch.Tensor | None):
         out = render_view(gaussians, T_cw, level.intrinsics, self.render_config, pose_only=True)
-        masks = rgbd_masks(level.color, level.depth, out.alpha, opacity_threshold=self.config.opacity_threshold,
-                           extra_color_mask=level.gradient_mask)
+        masks = level.target_masks.where_opaque(out.alpha, self.config.opacity_threshold)
         color = out.color if exposure is None else apply_affine_exposure(out.color, exposure[0], exposure[1])
         return rgbd_l1_loss(color, out.depth, level.color, level.depth, alpha_color=self.config.alpha_color, masks=masks)
 
@@ -119,6 +119,8 @@ class Tracker:
         # Pose algebra in float64 (a float32 product is orthonormal only to ~1e-7, and the motion model
         # would amplify that from frame to frame); only the renderer's input is cast to the map's dtype.
         T_cw_init = se3_inverse(T_wc_init.to(torch.float64)).to(device=device)
+        gaussians = frustum_subset(gaussians, T_cw_init.to(dtype), frame.intrinsics, margin=cfg.frustum_margin,
+                                   k_sigma=self.render_config.eaa_k_sigma, near_plane=self.render_config.near_plane)
         rho = torch.zeros(3, device=device, dtype=dtype, requires_grad=True)
         phi = torch.zeros(3, device=device, dtype=dtype, requires_grad=True)
         groups = [{"params": [rho], "lr": cfg.lr_translation}, {"params": [phi], "lr": cfg.lr_rotation}]
@@ -129,7 +131,8 @@ class Tracker:
         optimizer = _pose_optimizer(cfg, groups)
 
         iterations = 0
-        best_loss, best = math.inf, (torch.zeros(6, dtype=dtype, device=device), None)
+        # The lowest full-resolution loss seen, its depth-pixel count, and the pose (and exposure) it was seen at.
+        best_loss, best_depth_pixels, best = math.inf, 0, (torch.zeros(6, dtype=dtype, device=device), None)
         levels = self._levels(frame)
         full = levels[-1]  # scale 1 is always last and gets at least half of the iterations
         base_lrs = [group["lr"] for group in optimizer.param_groups]
@@ -145,7 +148,7 @@ class Tracker:
                 if not torch.isfinite(loss.total):
                     return self._failed(T_wc_init, iterations, "non_finite_loss", math.nan, 0.0)
                 if level is full and float(loss.total.detach()) < best_loss:
-                    best_loss = float(loss.total.detach())
+                    best_loss, best_depth_pixels = float(loss.total.detach()), loss.num_depth_pixels
                     best = (xi.detach().clone(), None if exposure is None else exposure.detach().clone())
                 optimizer.zero_grad(set_to_none=True)
                 loss.total.backward()
@@ -156,14 +159,11 @@ class Tracker:
                 if _converged(optimizer, [rho, phi], step, cfg.convergence_threshold):
                     break
 
-        # Evaluate the best pose once more at full resolution: its loss and valid-pixel count decide success.
+        # The best pose's loss and valid-pixel count (seen when it was rendered) decide success.
         xi_best, exposure_best = best
-        with torch.no_grad():
-            T_cw_best = se3_exp(xi_best.to(torch.float64)) @ T_cw_init
-            last = self._loss(gaussians, T_cw_best.to(dtype), full, exposure_best)
-        total_pixels = frame.depth.numel()
-        valid_fraction = last.num_depth_pixels / max(1, total_pixels)
-        final_loss = float(last.total)
+        T_cw_best = se3_exp(xi_best.to(torch.float64)) @ T_cw_init
+        valid_fraction = best_depth_pixels / max(1, frame.depth.numel())
+        final_loss = best_loss
         if not math.isfinite(final_loss):
             return self._failed(T_wc_init, iterations, "non_finite_loss", math.nan, valid_fraction)
         if valid_fraction < cfg.min_valid_fraction:

@@ -187,3 +187,19 @@ def test_bad_shapes_raise():
         rgbd_l1_loss(torch.zeros(4, 4, 3), torch.zeros(4, 4), torch.zeros(4, 5, 3), torch.zeros(4, 5), alpha_color=0.5)
     with pytest.raises(ValueError):
         image_gradient_mask(torch.zeros(4, 4), 100.0)
+
+
+def test_target_masks_then_the_opacity_test_equal_the_masks_built_with_the_opacity():
+    generator = torch.Generator().manual_seed(3)
+    color = torch.rand(12, 16, 3, generator=generator)
+    color[2, 3, 1] = float("nan")
+    depth = torch.rand(12, 16, generator=generator) + 0.5
+    depth[5, :4] = 0.0
+    alpha = torch.rand(12, 16, generator=generator)
+    for threshold in (0.0, 0.5, 0.95):
+        at_once = rgbd_masks(color, depth, alpha, opacity_threshold=threshold, gradient_percentile=40.0)
+        in_two = rgbd_masks(color, depth, gradient_percentile=40.0).where_opaque(alpha, threshold)
+        assert torch.equal(at_once.color, in_two.color) and torch.equal(at_once.depth, in_two.depth)
+    assert not in_two.color[2, 3] and not in_two.depth[5, 0]
+    with pytest.raises(ValueError, match="opacity"):
+        rgbd_masks(color, depth).where_opaque(alpha[:-1], 0.5)

@@ -13,15 +13,17 @@ import torch
 
 import data_synth
 from mipslam.cli import main
-from mipslam.config import load_config
+from mipslam.config import RenderConfig, load_config
 from mipslam.datasets import make_sequence
-from mipslam.gaussians import GaussianMap, GaussianOptimizer, gaussians_from_rgbd
+from mipslam.gaussians import ActivatedGaussians, GaussianMap, GaussianOptimizer, gaussians_from_rgbd
 from mipslam.geometry import se3_exp, se3_inverse, se3_log
 from mipslam.io.ply import read_map_ply
 from mipslam.io.tum import read_tum_trajectory
 from mipslam.mapping import Mapper, MappingView
 from mipslam.pipeline import run_slam
+from mipslam.rendering import frustum_subset, render_view
 from mipslam.tracking import Tracker
+from mipslam.types import Intrinsics
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -219,3 +221,43 @@ def test_rprop_tracking_stops_early_at_the_pose_adam_reaches_with_every_iteratio
         ends[name] = (result.iterations, se3_log(se3_inverse(T_wc_true) @ result.T_wc))
     assert ends["rprop"][0] < 40 and ends["adam"][0] == 80, ends
     assert (ends["rprop"][1] - ends["adam"][1]).norm() < 1e-3, ends
+
+
+def test_tracking_against_the_frustum_subset_equals_tracking_against_the_whole_map(one_frame_map):
+    # A far-away copy of the map (behind the camera and off to the side) cannot be drawn: tracking leaves it
+    # out of the projection and must end where tracking the original map ends, with the same loss.
+    seq, config, sequence, gaussians = one_frame_map
+    frame, T_wc_true = sequence[0], sequence.gt_T_wc[0]
+    offset = torch.tensor([0.0, 0.0, -50.0]) @ T_wc_true[:3, :3].T.float()  # 50 m behind the camera
+    doubled = type(gaussians)(torch.cat([gaussians.means, gaussians.means + offset]),
+                              *(torch.cat([t, t]) for t in (gaussians.quats, gaussians.scales, gaussians.opacities,
+                                                            gaussians.colors)))
+    T_wc_init = T_wc_true @ se3_exp(torch.tensor([0.01, -0.01, 0.005, 0.01, -0.01, 0.005], dtype=torch.float64))
+    settings = tiny_config(seq, "tracking.iterations=30").tracking
+    alone = Tracker(settings, config.render).track(gaussians, frame, T_wc_init, running_loss=None)
+    culled = Tracker(settings, config.render).track(doubled, frame, T_wc_init, running_loss=None)
+    assert culled.ok and culled.iterations == alone.iterations
+    assert torch.allclose(culled.T_wc, alone.T_wc, atol=1e-6) and culled.loss == pytest.approx(alone.loss, rel=1e-5)
+
+
+def test_frustum_subset_renders_like_the_whole_map_from_nearby_poses():
+    generator = torch.Generator().manual_seed(0)
+    n = 3000
+    directions = torch.nn.functional.normalize(torch.randn(n, 3, generator=generator), dim=-1)
+    means = directions * (0.5 + 3.0 * torch.rand(n, 1, generator=generator))  # all around the camera
+    gaussians = ActivatedGaussians(means, torch.nn.functional.normalize(torch.randn(n, 4, generator=generator), dim=-1),
+                                   0.01 + 0.05 * torch.rand(n, 3, generator=generator),
+                                   0.2 + 0.8 * torch.rand(n, generator=generator), torch.rand(n, 3, generator=generator))
+    intrinsics = Intrinsics(fx=40.0, fy=40.0, cx=31.5, cy=23.5, width=64, height=48)
+    config = RenderConfig()
+    T_cw = torch.eye(4)
+    subset = frustum_subset(gaussians, T_cw, intrinsics, margin=0.25, k_sigma=config.eaa_k_sigma,
+                            near_plane=config.near_plane)
+    assert 0 < len(subset) < 0.5 * n  # the view sees well under half of a sphere around it
+    nearby = se3_exp(torch.tensor([0.01, -0.01, 0.01, 0.02, -0.015, 0.01], dtype=torch.float64)).float()  # ~1.5 deg
+    for pose in (T_cw, nearby @ T_cw):
+        whole = render_view(gaussians, pose, intrinsics, config)
+        part = render_view(subset, pose, intrinsics, config)
+        assert whole.n_visible == part.n_visible
+        for name in ("color", "depth", "alpha"):
+            assert torch.allclose(getattr(whole, name), getattr(part, name), atol=1e-6), name

@@ -52,6 +52,20 @@ class RGBDMasks:
     color: torch.Tensor
     depth: torch.Tensor
 
+    def where_opaque(self, alpha: torch.Tensor, opacity_threshold: float) -> "RGBDMasks":
+        """These masks restricted to pixels whose rendered opacity ``alpha`` [H, W] is at least
+        ``opacity_threshold`` (the map explains them); a threshold <= 0 returns the masks unchanged.
+
+        Lets a caller build the target's masks once (:func:`rgbd_masks` without ``alpha``) and add the
+        opacity condition at every render, which gives the same masks as :func:`rgbd_masks` with ``alpha``.
+        """
+        if opacity_threshold <= 0.0:
+            return self
+        if alpha.shape != self.depth.shape:
+            raise ValueError(f"rgbd_masks: opacity {tuple(alpha.shape)} must match depth {tuple(self.depth.shape)}")
+        opaque = alpha.detach() >= opacity_threshold
+        return RGBDMasks(color=self.color & opaque, depth=self.depth & opaque)
+
 
 @dataclass(frozen=True)
 class RGBDLoss:
@@ -174,19 +188,15 @@ def rgbd_masks(
     with torch.no_grad():
         valid_depth = torch.isfinite(depth_gt) & (depth_gt > 0)  # [H, W]
         color_ok = torch.isfinite(color_gt).all(dim=-1) if color_gt.dim() == 3 else torch.isfinite(color_gt)
-        if alpha is not None and opacity_threshold > 0.0:
-            if alpha.shape != depth_gt.shape:
-                raise ValueError(f"rgbd_masks: opacity {tuple(alpha.shape)} must match depth {tuple(depth_gt.shape)}")
-            opaque = alpha.detach() >= opacity_threshold
-        else:
-            opaque = torch.ones_like(valid_depth)
-        color_mask = color_ok & opaque & image_gradient_mask(color_gt, gradient_percentile)
+        color_mask = color_ok & image_gradient_mask(color_gt, gradient_percentile)
         if color_needs_valid_depth:
             color_mask = color_mask & valid_depth
         if extra_color_mask is not None:
             color_mask = color_mask & extra_color_mask.to(torch.bool)
-        depth_mask = valid_depth & opaque
-    return RGBDMasks(color=color_mask, depth=depth_mask)
+        masks = RGBDMasks(color=color_mask, depth=valid_depth)
+        if alpha is not None:
+            masks = masks.where_opaque(alpha, opacity_threshold)
+    return masks
 
 
 def masked_l1(
