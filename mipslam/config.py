@@ -110,6 +110,10 @@ class RenderConfig:
     eaa_single_node_sigma: float = 1.0  # minor-axis std-dev (px) from which 1 moment-matched node suffices
     eaa_k_sigma: float = 3.0
     near_plane: float = 0.01
+    # Tracking and mapping render a view from the Gaussians that reach its image enlarged by this fraction of
+    # the larger side, at the pose the view starts from (0.25: about 16 degrees of a 70-degree view, far
+    # beyond what one optimisation moves a pose); the rest of the map cannot be drawn and is left out.
+    frustum_margin: float = 0.25
 
     def __post_init__(self):
         _check(self.eaa_max_nodes >= 1, "render.eaa_max_nodes", "must be >= 1 (1 = point value)")
@@ -120,6 +124,7 @@ class RenderConfig:
         _check(self.eaa_k_sigma > 0, "render.eaa_k_sigma", "must be positive")
         _check(self.filter_3d_scale > 0, "render.filter_3d_scale", "must be positive")
         _check(self.near_plane > 0, "render.near_plane", "must be positive")
+        _check(self.frustum_margin >= 0, "render.frustum_margin", "must be >= 0 (a fraction of the image size)")
 
 
 @dataclass(frozen=True)
@@ -150,14 +155,9 @@ class TrackingConfig:
     # A frame whose loss stays above ratio * running level is aligned to the previous frame by RGB-D
     # odometry and tracked again from there (a jump, a bump, dropped frames); 0 turns it off.
     relocalise_loss_ratio: float = 1.3
-    # Each frame is tracked against the Gaussians that reach the image enlarged by this fraction of its
-    # larger side at the motion-model pose (0.25: about 16 degrees of a 70-degree view, far beyond what
-    # tracking moves); the rest of the map cannot be drawn and is left out of the projection.
-    frustum_margin: float = 0.25
 
     def __post_init__(self):
         _check(self.iterations >= 1, "tracking.iterations", "must be >= 1")
-        _check(self.frustum_margin >= 0, "tracking.frustum_margin", "must be >= 0 (a fraction of the image size)")
         _check(0 <= self.alpha_color <= 1, "tracking.alpha_color", "must be in [0, 1]")
         _check(self.lr_translation > 0 and self.lr_rotation > 0, "tracking.lr_*", "learning rates must be positive")
         _check(0 < self.lr_final_ratio <= 1, "tracking.lr_final_ratio", "must be in (0, 1] (1 = constant rate)")

@@ -37,7 +37,7 @@ from mipslam.geometry.se3 import se3_exp, se3_inverse
 from mipslam.losses.frequency import frequency_loss
 from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, rgbd_l1_loss, rgbd_masks
 from mipslam.losses.regularizers import isotropy_loss
-from mipslam.rendering import render_view
+from mipslam.rendering import frustum_indices, render_view
 from mipslam.types import Intrinsics
 
 
@@ -123,21 +123,23 @@ class Mapper:
     # ------------------------------------------------------------------ optimisation
 
     def view_loss(self, gmap: GaussianMap, view: MappingView, T_cw: torch.Tensor,
-                  masks: RGBDMasks | None = None) -> torch.Tensor:
+                  masks: RGBDMasks | None = None, rows: torch.Tensor | None = None) -> torch.Tensor:
         """The mapping loss of one view (module docstring), differentiable w.r.t. the map and ``T_cw``.
 
-        ``masks``: the view's :func:`rgbd_masks` when the caller already has them (they depend on the
-        targets alone, so :meth:`optimize` builds them once per view).
+        What :meth:`optimize` computes once per view and passes in: ``masks``, the view's
+        :func:`rgbd_masks` (they depend on the targets alone), and ``rows`` [M] int64, the Gaussians
+        the view can draw (:func:`frustum_indices`); the others would get zero gradients anyway.
         """
         cfg = self.config
-        g = gmap.activated()
+        g = gmap.activated(rows)
         out = render_view(g, T_cw, view.intrinsics, self.render_config)
         color = apply_affine_exposure(out.color, view.exposure[0], view.exposure[1])
         if masks is None:
             masks = rgbd_masks(view.color, view.depth)
         loss = rgbd_l1_loss(color, out.depth, view.color, view.depth, alpha_color=cfg.alpha_color, masks=masks).total
-        if cfg.isotropy_weight > 0:
-            loss = loss + cfg.isotropy_weight * isotropy_loss(g.scales)
+        if cfg.isotropy_weight > 0:  # over the whole map, seen or not
+            scales = g.scales if rows is None else torch.exp(gmap.log_scales)
+            loss = loss + cfg.isotropy_weight * isotropy_loss(scales)
         if cfg.lambda_freq > 0:
             loss = loss + cfg.lambda_freq * frequency_loss(color, view.color, patch_size=cfg.freq_patch,
                                                            alpha=cfg.freq_alpha, mask=masks.color)
@@ -153,6 +155,7 @@ class Mapper:
         pose_optimizer = torch.optim.Adam(list(pose_deltas.values()), lr=self.config.lr_poses) if pose_deltas else None
         first = last = math.nan
         masks: dict[int, RGBDMasks] = {}
+        rows: dict[int, torch.Tensor] = {}
         for step in range(iterations):
             if step % 2 == 0 or len(views) == 1:
                 index = 0
@@ -162,8 +165,11 @@ class Mapper:
             if index in pose_deltas:
                 T_cw = se3_exp(pose_deltas[index]) @ T_cw
             if index not in masks:
-                masks[index] = rgbd_masks(views[index].color, views[index].depth)
-            loss = self.view_loss(gmap, views[index], T_cw, masks[index])
+                view = views[index]
+                masks[index] = rgbd_masks(view.color, view.depth)
+                rows[index] = frustum_indices(gmap.means, torch.exp(gmap.log_scales.detach()), T_cw_init[index],
+                                              view.intrinsics, self.render_config)
+            loss = self.view_loss(gmap, views[index], T_cw, masks[index], rows[index])
             if not torch.isfinite(loss):
                 break  # never step on a non-finite loss: the map keeps its last finite state
             optimizer.zero_grad()

@@ -53,35 +53,39 @@ def render_view(
 
 
 @torch.no_grad()
-def frustum_subset(
-    gaussians: ActivatedGaussians,
-    T_cw: torch.Tensor,  # [4, 4] world-to-camera of the pose the view will stay near
+def frustum_indices(
+    means: torch.Tensor,  # [N, 3] world, metres
+    scales: torch.Tensor,  # [N, 3] std-devs, metres
+    T_cw: torch.Tensor,  # [4, 4] world-to-camera of the pose the view starts from
     intrinsics: Intrinsics,
-    *,
-    margin: float,
-    k_sigma: float,
-    near_plane: float,
-) -> ActivatedGaussians:
-    """The Gaussians that can be drawn from poses near ``T_cw``: the rest of the map, left out.
+    config: RenderConfig,
+) -> torch.Tensor:  # [M] int64, increasing
+    """Rows of the Gaussians that can be drawn from poses near ``T_cw`` (``render.frustum_margin``).
 
     A Gaussian is kept when its mean lies beyond half the near plane and its k-sigma disc (radius
-    ``k_sigma * max scale * f / z`` px, plus a pixel) reaches the image enlarged by ``margin`` times its
-    larger side on every side. Tracking moves the pose by millimetres to centimetres while a margin of
-    0.25 is about 16 degrees of a 70-degree view, so a left-out Gaussian is one no render of the
-    tracked frame could draw: images and pose gradients are those of the whole map. The per-Gaussian
-    projection then scales with what the view sees, not with the size of the map.
-    The result is detached (for a frozen map; the renderer's pose-only path detaches the map anyway).
+    ``k_sigma * max scale * f / z`` px, plus a pixel) reaches the image enlarged by ``frustum_margin``
+    times its larger side on every side. One tracking or mapping call moves a pose by millimetres to
+    centimetres, while a margin of 0.25 is about 16 degrees of a 70-degree view: a Gaussian left out is
+    one no render of the view could draw, so images and gradients are those of the whole map, and the
+    per-Gaussian projection scales with what the view sees, not with the size of the map.
     """
-    p = transform_points(T_cw.to(gaussians.means), gaussians.means)  # [N, 3] camera frame
+    T = T_cw.to(means)
+    p = transform_points(T, means.detach())  # [N, 3] camera frame
     z = p[:, 2]
-    in_front = z > 0.5 * near_plane
+    in_front = z > 0.5 * config.near_plane
     z_safe = torch.where(in_front, z, torch.ones_like(z))
-    pad = margin * max(intrinsics.width, intrinsics.height) + 1.0
-    reach = k_sigma * gaussians.scales.max(dim=-1).values * max(intrinsics.fx, intrinsics.fy) / z_safe + pad  # [N] px
-    u = intrinsics.fx * p[:, 0] / z_safe + intrinsics.cx
+    pad = config.frustum_margin * max(intrinsics.width, intrinsics.height) + 1.0
+    reach = config.eaa_k_sigma * scales.detach().amax(dim=-1) * max(intrinsics.fx, intrinsics.fy) / z_safe + pad
+    u = intrinsics.fx * p[:, 0] / z_safe + intrinsics.cx  # [N] px
     v = intrinsics.fy * p[:, 1] / z_safe + intrinsics.cy
     keep = (in_front & (u + reach > -0.5) & (u - reach < intrinsics.width - 0.5)
             & (v + reach > -0.5) & (v - reach < intrinsics.height - 0.5))
-    index = torch.nonzero(keep).squeeze(1)
+    return torch.nonzero(keep).squeeze(1)
+
+
+def frustum_subset(gaussians: ActivatedGaussians, T_cw: torch.Tensor, intrinsics: Intrinsics,
+                   config: RenderConfig) -> ActivatedGaussians:
+    """The detached rows of a frozen map that :func:`frustum_indices` keeps (tracking)."""
+    index = frustum_indices(gaussians.means, gaussians.scales, T_cw, intrinsics, config)
     return ActivatedGaussians(*(t.detach().index_select(0, index) for t in (
         gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.colors)))

@@ -119,8 +119,7 @@ class Tracker:
         # Pose algebra in float64 (a float32 product is orthonormal only to ~1e-7, and the motion model
         # would amplify that from frame to frame); only the renderer's input is cast to the map's dtype.
         T_cw_init = se3_inverse(T_wc_init.to(torch.float64)).to(device=device)
-        gaussians = frustum_subset(gaussians, T_cw_init.to(dtype), frame.intrinsics, margin=cfg.frustum_margin,
-                                   k_sigma=self.render_config.eaa_k_sigma, near_plane=self.render_config.near_plane)
+        gaussians = frustum_subset(gaussians, T_cw_init.to(dtype), frame.intrinsics, self.render_config)
         rho = torch.zeros(3, device=device, dtype=dtype, requires_grad=True)
         phi = torch.zeros(3, device=device, dtype=dtype, requires_grad=True)
         groups = [{"params": [rho], "lr": cfg.lr_translation}, {"params": [phi], "lr": cfg.lr_rotation}]

@@ -79,7 +79,7 @@ def test_a_retired_key_says_what_replaced_it(tmp_path):
         ("tracking.lr_final_ratio=0", "tracking.lr_final_ratio"),
         ("tracking.optimizer=sgd", "tracking.optimizer"),
         ("tracking.rprop_max_step_ratio=0.5", "tracking.rprop_max_step_ratio"),
-        ("tracking.frustum_margin=-0.1", "tracking.frustum_margin"),
+        ("render.frustum_margin=-0.1", "render.frustum_margin"),
     ],
 )
 def test_wrong_types_and_out_of_range_values(override, message):

@@ -220,7 +220,9 @@ def test_rprop_tracking_stops_early_at_the_pose_adam_reaches_with_every_iteratio
         assert result.ok
         ends[name] = (result.iterations, se3_log(se3_inverse(T_wc_true) @ result.T_wc))
     assert ends["rprop"][0] < 40 and ends["adam"][0] == 80, ends
-    assert (ends["rprop"][1] - ends["adam"][1]).norm() < 1e-3, ends
+    # Adam still steps by about its rate (2 mm, 4 mrad) at the end, so its best iterate places the optimum
+    # only to about a millimetre: float round-off in the map moves it by that much.
+    assert (ends["rprop"][1] - ends["adam"][1]).norm() < 2e-3, ends
 
 
 def test_tracking_against_the_frustum_subset_equals_tracking_against_the_whole_map(one_frame_map):
@@ -251,8 +253,8 @@ def test_frustum_subset_renders_like_the_whole_map_from_nearby_poses():
     intrinsics = Intrinsics(fx=40.0, fy=40.0, cx=31.5, cy=23.5, width=64, height=48)
     config = RenderConfig()
     T_cw = torch.eye(4)
-    subset = frustum_subset(gaussians, T_cw, intrinsics, margin=0.25, k_sigma=config.eaa_k_sigma,
-                            near_plane=config.near_plane)
+    assert config.frustum_margin == 0.25
+    subset = frustum_subset(gaussians, T_cw, intrinsics, config)
     assert 0 < len(subset) < 0.5 * n  # the view sees well under half of a sphere around it
     nearby = se3_exp(torch.tensor([0.01, -0.01, 0.01, 0.02, -0.015, 0.01], dtype=torch.float64)).float()  # ~1.5 deg
     for pose in (T_cw, nearby @ T_cw):
@@ -261,3 +263,26 @@ def test_frustum_subset_renders_like_the_whole_map_from_nearby_poses():
         assert whole.n_visible == part.n_visible
         for name in ("color", "depth", "alpha"):
             assert torch.allclose(getattr(whole, name), getattr(part, name), atol=1e-6), name
+
+
+def test_mapping_a_view_without_the_gaussians_it_cannot_draw_changes_nothing(tiny_sequence):
+    # The map of frame 0 plus a copy 50 m behind the camera: with the frustum margin, mapping renders the
+    # view without the copy; with an unbounded margin it projects the copy too (which gets zero gradients).
+    # The map after the same Adam steps must agree either way, copy included.
+    config, sequence, gmap, _, _ = _map_of_first_frame(tiny_sequence, 5)
+    T_wc = sequence.gt_T_wc[0]
+    copy = gmap.detached()
+    shift = torch.tensor([0.0, 0.0, -50.0], dtype=torch.float64) @ T_wc[:3, :3].T
+    gmap.add(replace(copy, means=copy.means + shift.float()))
+    frame = sequence[0]
+    view = MappingView(0, frame.color, frame.depth, T_wc, torch.zeros(2), frame.intrinsics, optimize_pose=False)
+    ends = []
+    for margin in (0.25, 1e6):
+        trial = GaussianMap(gmap.detached())
+        optimizer = GaussianOptimizer.from_config(trial, config.mapping)
+        mapper = Mapper(config.mapping, replace(config.render, frustum_margin=margin))
+        first, last, _ = mapper.optimize(trial, optimizer, [view], 10, torch.Generator().manual_seed(0))
+        ends.append((last, trial.detached()))
+    assert ends[0][0] == pytest.approx(ends[1][0], rel=1e-5)
+    for name in ("means", "log_scales", "opacity_logits", "colors_raw"):
+        assert torch.allclose(getattr(ends[0][1], name), getattr(ends[1][1], name), atol=1e-5), name

@@ -225,15 +225,24 @@ class GaussianMap:
         """A detached copy of everything, e.g. to build another map or compare states."""
         return GaussianParameters(**{name: getattr(self, name).detach().clone() for name in PARAMETER_NAMES + BUFFER_NAMES})
 
-    def activated(self) -> ActivatedGaussians:
-        """Renderer inputs (differentiable w.r.t. the leaf parameters); see :class:`ActivatedGaussians`."""
-        norm = self.quats_wxyz.norm(dim=-1, keepdim=True).clamp_min(QUAT_NORM_EPS)
+    def activated(self, index: torch.Tensor | None = None) -> ActivatedGaussians:
+        """Renderer inputs (differentiable w.r.t. the leaf parameters); see :class:`ActivatedGaussians`.
+
+        ``index`` [M] int64: only those rows (gradients flow back to them; the other rows get zeros).
+        """
+        if index is None:
+            means, quats, log_scales, opacity_logits, colors_raw = (
+                self.means, self.quats_wxyz, self.log_scales, self.opacity_logits, self.colors_raw)
+        else:
+            means, quats, log_scales, opacity_logits, colors_raw = (t.index_select(0, index) for t in (
+                self.means, self.quats_wxyz, self.log_scales, self.opacity_logits, self.colors_raw))
+        norm = quats.norm(dim=-1, keepdim=True).clamp_min(QUAT_NORM_EPS)
         return ActivatedGaussians(
-            means=self.means,
-            quats=self.quats_wxyz / norm,
-            scales=torch.exp(self.log_scales),
-            opacities=torch.sigmoid(self.opacity_logits),
-            colors=torch.sigmoid(self.colors_raw),
+            means=means,
+            quats=quats / norm,
+            scales=torch.exp(log_scales),
+            opacities=torch.sigmoid(opacity_logits),
+            colors=torch.sigmoid(colors_raw),
         )
 
     # --------------------------------------------------------------------------- resizing
