@@ -11,7 +11,9 @@ On each keyframe (DESIGN.md "Losses" and "Model only what a scene requires"):
    gauge) for ``iterations`` Adam steps; step ``i`` uses the newest keyframe on even steps and a
    keyframe drawn with the run's generator from the others on odd steps. Loss per view:
    ``alpha_c |exposure(I) - I_gt| + (1 - alpha_c) |D - D_gt|`` (means over valid pixels)
-   ``+ isotropy_weight * isotropy(scales) + lambda_freq * L_freq(I, I_gt)``;
+   ``+ isotropy_weight * isotropy(scales) + lambda_freq * L_freq(I, I_gt)``; each view renders the
+   Gaussians that can reach it from its starting pose (``render.frustum_margin``), the isotropy term
+   covers the whole map;
 3. prune Gaussians with negligible opacity, non-finite values or an absurd size, and enforce the cap.
 """
 from __future__ import annotations
@@ -155,7 +157,7 @@ class Mapper:
         pose_optimizer = torch.optim.Adam(list(pose_deltas.values()), lr=self.config.lr_poses) if pose_deltas else None
         first = last = math.nan
         masks: dict[int, RGBDMasks] = {}
-        rows: dict[int, torch.Tensor] = {}
+        rows: dict[int, torch.Tensor | None] = {}
         for step in range(iterations):
             if step % 2 == 0 or len(views) == 1:
                 index = 0
@@ -167,8 +169,9 @@ class Mapper:
             if index not in masks:
                 view = views[index]
                 masks[index] = rgbd_masks(view.color, view.depth)
-                rows[index] = frustum_indices(gmap.means, torch.exp(gmap.log_scales.detach()), T_cw_init[index],
-                                              view.intrinsics, self.render_config)
+                seen = frustum_indices(gmap.means, torch.exp(gmap.log_scales.detach()), T_cw_init[index],
+                                       view.intrinsics, self.render_config)
+                rows[index] = None if len(seen) == len(gmap) else seen  # nothing to leave out: the whole map
             loss = self.view_loss(gmap, views[index], T_cw, masks[index], rows[index])
             if not torch.isfinite(loss):
                 break  # never step on a non-finite loss: the map keeps its last finite state

@@ -7,7 +7,8 @@ Adam or Rprop (``tracking.optimizer``) on the loss of DESIGN.md ("Losses", track
 where the masks keep valid depth, rendered opacity >= ``opacity_threshold`` (pixels the map explains)
 and, for colour, pixels above an image-gradient percentile. Optional coarse-to-fine: the first
 levels run at reduced resolution (area-averaged targets, intrinsics scaled with the pixel-centre rule).
-The renderer's pose-only backward is used (the map is frozen).
+The renderer's pose-only backward is used (the map is frozen), on the Gaussians that can reach the
+view from the motion-model pose (:func:`~mipslam.rendering.frustum_indices`, ``render.frustum_margin``).
 
 Failure (non-finite loss, too few valid pixels, loss far above its running level) keeps the
 motion-model pose and is reported, never raised: the pipeline flags the frame and skips mapping.
