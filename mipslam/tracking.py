@@ -136,12 +136,15 @@ class Tracker:
         levels = self._levels(frame)
         full = levels[-1]  # scale 1 is always last and gets at least half of the iterations
         base_lrs = [group["lr"] for group in optimizer.param_groups]
+        # Adam's rate decays geometrically within each level: lr_i = lr * ratio^(i / (n - 1)). Rprop reads lr
+        # only to size its first steps and adapts them itself, so its rate is left alone.
+        decays_lr = cfg.optimizer == "adam"
         for level in levels:
-            # Geometric decay within each level: lr_i = lr * ratio^(i / (n - 1)).
             decay = cfg.lr_final_ratio ** (1.0 / max(1, level.iterations - 1))
             for i in range(level.iterations):
-                for group, base in zip(optimizer.param_groups, base_lrs):
-                    group["lr"] = base * decay ** i
+                if decays_lr:
+                    for group, base in zip(optimizer.param_groups, base_lrs):
+                        group["lr"] = base * decay ** i
                 xi = torch.cat([rho, phi])
                 T_cw = (se3_exp(xi.to(torch.float64)) @ T_cw_init).to(dtype)
                 loss = self._loss(gaussians, T_cw, level, exposure)
