@@ -10,6 +10,7 @@ import torch
 
 from mipslam.config import RenderConfig
 from mipslam.gaussians import ActivatedGaussians
+from mipslam.geometry.camera import project
 from mipslam.geometry.se3 import transform_points
 from mipslam.render import RenderOutput, rasterize
 from mipslam.types import Intrinsics
@@ -69,16 +70,14 @@ def frustum_indices(
     one no render of the view could draw, so images and gradients are those of the whole map, and the
     per-Gaussian projection scales with what the view sees, not with the size of the map.
     """
-    T = T_cw.to(means)
-    p = transform_points(T, means.detach())  # [N, 3] camera frame
-    z = p[:, 2]
-    in_front = z > 0.5 * config.near_plane
-    z_safe = torch.where(in_front, z, torch.ones_like(z))
+    near = 0.5 * config.near_plane
+    points_c = transform_points(T_cw.to(means), means.detach())  # [N, 3] camera frame
+    uv, z = project(points_c, intrinsics.matrix(dtype=means.dtype, device=means.device), min_depth=near)  # [N, 2] px
     pad = config.frustum_margin * max(intrinsics.width, intrinsics.height) + 1.0
-    reach = config.eaa_k_sigma * scales.detach().amax(dim=-1) * max(intrinsics.fx, intrinsics.fy) / z_safe + pad
-    u = intrinsics.fx * p[:, 0] / z_safe + intrinsics.cx  # [N] px
-    v = intrinsics.fy * p[:, 1] / z_safe + intrinsics.cy
-    keep = (in_front & (u + reach > -0.5) & (u - reach < intrinsics.width - 0.5)
+    reach = config.eaa_k_sigma * scales.detach().amax(dim=-1) * max(intrinsics.fx, intrinsics.fy) / z.clamp_min(near)
+    reach = reach + pad  # [N] px
+    u, v = uv[:, 0], uv[:, 1]
+    keep = ((z > near) & (u + reach > -0.5) & (u - reach < intrinsics.width - 0.5)
             & (v + reach > -0.5) & (v - reach < intrinsics.height - 0.5))
     return torch.nonzero(keep).squeeze(1)
 
