@@ -83,6 +83,28 @@ def test_masked_l1_excludes_nan_in_rendered_outside_mask():
     assert torch.equal(prediction.grad, torch.tensor([[0.5, 0.0], [0.5, 0.0]]))
 
 
+@pytest.mark.parametrize("shape", [(9, 7, 3), (9, 7)])
+def test_masked_l1_equals_the_autograd_expression(shape):
+    """masked_l1's written-out backward against autograd through where/abs/sum: value and gradients with
+    respect to both inputs, including pixels where prediction equals target (sign 0, as abs' gradient)."""
+    generator = torch.Generator().manual_seed(len(shape))
+    prediction = torch.rand(*shape, generator=generator, dtype=torch.float64, requires_grad=True)
+    target = torch.rand(*shape, generator=generator, dtype=torch.float64)
+    target[0, :3] = prediction.detach()[0, :3]  # ties
+    target.requires_grad_(True)
+    mask = torch.rand(shape[:2], generator=generator) > 0.3
+    value, count = masked_l1(prediction, target, mask)
+    pixel_mask = mask if len(shape) == 2 else mask[..., None]
+    channels = 1 if len(shape) == 2 else shape[2]
+    expected = torch.where(pixel_mask, prediction - target, 0.0).abs().sum() / (int(mask.sum()) * channels)
+    assert count == int(mask.sum()) and value.item() == pytest.approx(expected.item(), rel=1e-15)
+    got = torch.autograd.grad(value, (prediction, target))
+    want = torch.autograd.grad(expected, (prediction, target))
+    for g, w in zip(got, want):
+        assert torch.equal(g, w)
+    torch.autograd.gradcheck(lambda p: masked_l1(p, target.detach(), mask)[0], (prediction,))
+
+
 def test_gradient_mask_keeps_edges_above_percentile():
     image = torch.zeros(20, 20, 3)
     image[:, 10:] = 1.0  # vertical step edge between columns 9 and 10
