@@ -13,6 +13,7 @@ errors into exit codes (0 success, 1 unexpected failure, 2 usage/config/data err
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import logging
 import sys
@@ -177,6 +178,9 @@ def _cmd_run(args) -> int:
     if args.resume is not None and args.out is not None and args.out.resolve() != args.resume.resolve():
         raise _UsageError("mipslam run: --resume RUN_DIR continues in RUN_DIR; drop --out or give the same folder")
     run_dir = args.resume or args.out or Path("runs") / f"{args.config.stem}-{time.strftime('%Y%m%d-%H%M%S')}"
+    # What is alive now (modules, the config) lives for the whole run: keep it out of the cyclic collector's
+    # full passes, each of which would rescan ~200k objects (0.15-0.2 s; 0.4 s of GC in 20 frames -> 0.1 s).
+    gc.freeze()
     summary = run_slam(config, run_dir, resume=args.resume is not None, evaluate=not args.no_eval)
     print(summary.describe())
     return EXIT_OK
