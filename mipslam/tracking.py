@@ -103,7 +103,8 @@ class Tracker:
         return levels
 
     def _loss(self, gaussians: ActivatedGaussians, T_cw: torch.Tensor, level: _Level, exposure: torch.Tensor | None):
-        out = render_view(gaussians, T_cw, level.intrinsics, self.render_config, pose_only=True)
+        out = render_view(gaussians, T_cw, level.intrinsics, self.render_config, mode=self.config.render_mode,
+                          pose_only=True)
         masks = level.target_masks.where_opaque(out.alpha, self.config.opacity_threshold)
         color = out.color if exposure is None else apply_affine_exposure(out.color, exposure[0], exposure[1])
         return rgbd_l1_loss(color, out.depth, level.color, level.depth, alpha_color=self.config.alpha_color, masks=masks)
