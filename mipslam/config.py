@@ -155,10 +155,10 @@ class TrackingConfig:
     # A frame whose loss stays above ratio * running level is aligned to the previous frame by RGB-D
     # odometry and tracked again from there (a jump, a bump, dropped frames); 0 turns it off.
     relocalise_loss_ratio: float = 1.3
-    # Footprint mode of tracking's renders (null: render.mode). Tracking compares the map with frames at the
-    # resolution it was mapped at, where the modes differ by tenths of a dB, while EAA's row rule for
-    # sub-pixel splats made a pose-only render 3x as expensive as mip's on a 320x240 map (docs/bench.md
-    # "Session 9"). Mapping always renders in render.mode.
+    # Footprint mode of tracking's renders (null: render.mode); mapping always renders in render.mode. On a
+    # 320x240 map EAA's row rule for sub-pixel splats made a pose-only render 3x as expensive as mip's, and
+    # mip tracking kept the ATE within the seed spread; at 160x120 it cost 0.2-0.3 cm (docs/bench.md
+    # "Session 9"). The balanced preset sets mip.
     render_mode: Literal["point", "mip", "ewa", "eaa", "exact"] | None = None
 
     def __post_init__(self):
