@@ -46,7 +46,7 @@ class GaussianOptimizer:
                   for name, param in gaussian_map.parameters().items()]
         # One fused kernel per tensor instead of about ten elementwise passes: 1.1-1.7 ms against 3.1-3.4 ms
         # per step on a 50k-Gaussian map (2 CPU threads), a few per cent of a mapping iteration.
-        fused = gaussian_map.device.type in ("cpu", "cuda") and gaussian_map.dtype.is_floating_point
+        fused = gaussian_map.device.type in ("cpu", "cuda")  # the map's tensors are floating point (model.py)
         self.adam = torch.optim.Adam(groups, betas=betas, eps=eps, fused=fused)
 
     @classmethod
