@@ -222,9 +222,14 @@ class MappingConfig:
     prune_opacity: float = 0.005
     prune_max_sigma_px: float = 50.0  # std-dev larger than this many pixels (seen from the keyframe) is absurd
     max_gaussians: int = 200_000
+    # Steps of the mapping loss after the last frame, over every keyframe (each pass in a random order), poses
+    # fixed, no densification: a final refinement like MonoGS's colour refinement. Keyframes mapped early saw
+    # only their own mapping steps and a few random revisits; this evens that out. 0 = off.
+    final_iterations: int = 0
 
     def __post_init__(self):
         _check(self.iterations >= 0, "mapping.iterations", "must be >= 0")
+        _check(self.final_iterations >= 0, "mapping.final_iterations", "must be >= 0 (0 = off)")
         _check(self.max_gaussians >= 1, "mapping.max_gaussians", "must be >= 1")
         _check(self.freq_patch >= 2, "mapping.freq_patch", "must be >= 2")
         _check(self.lambda_freq >= 0, "mapping.lambda_freq", "must be >= 0")

@@ -15,11 +15,15 @@ On each keyframe (DESIGN.md "Losses" and "Model only what a scene requires"):
    Gaussians that can reach it from its starting pose (``render.frustum_margin``), the isotropy term
    covers the whole map;
 3. prune Gaussians with negligible opacity, non-finite values or an absurd size, and enforce the cap.
+
+After the last frame, :meth:`Mapper.refine` takes ``final_iterations`` further steps of the same loss
+over all keyframes at fixed poses (the pipeline's final refinement).
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Iterable
 
 import torch
 
@@ -167,11 +171,7 @@ class Mapper:
             if index in pose_deltas:
                 T_cw = se3_exp(pose_deltas[index]) @ T_cw
             if index not in masks:
-                view = views[index]
-                masks[index] = rgbd_masks(view.color, view.depth)
-                seen = frustum_indices(gmap.means, torch.exp(gmap.log_scales.detach()), T_cw_init[index],
-                                       view.intrinsics, self.render_config)
-                rows[index] = None if len(seen) == len(gmap) else seen  # nothing to leave out: the whole map
+                masks[index], rows[index] = self._view_inputs(gmap, views[index], T_cw_init[index])
             loss = self.view_loss(gmap, views[index], T_cw, masks[index], rows[index])
             if not torch.isfinite(loss):
                 break  # never step on a non-finite loss: the map keeps its last finite state
@@ -189,6 +189,32 @@ class Mapper:
             for i, delta in pose_deltas.items()
         )
         return first, last, refined
+
+    def refine(self, gmap: GaussianMap, optimizer: GaussianOptimizer, views: Iterable[MappingView]) -> list[float]:
+        """One Adam step of the mapping loss per view, in the order given; poses stay fixed, nothing is added
+        or pruned. Returns the loss of each step taken; stops at a non-finite loss without stepping.
+
+        The final refinement over all keyframes (``mapping.final_iterations``): ``views`` may be a generator,
+        so a long run's keyframes need not all be in memory at once.
+        """
+        losses = []
+        for view in views:
+            T_cw = se3_inverse(view.T_wc).to(device=gmap.device, dtype=gmap.dtype)
+            loss = self.view_loss(gmap, view, T_cw, *self._view_inputs(gmap, view, T_cw))
+            if not torch.isfinite(loss):
+                break
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            losses.append(float(loss.detach()))
+        return losses
+
+    def _view_inputs(self, gmap: GaussianMap, view: MappingView,
+                     T_cw: torch.Tensor) -> tuple[RGBDMasks, torch.Tensor | None]:
+        """A view's loss masks and the rows of the Gaussians it can draw from ``T_cw`` [4, 4] (None: all)."""
+        seen = frustum_indices(gmap.means, torch.exp(gmap.log_scales.detach()), T_cw, view.intrinsics,
+                               self.render_config)
+        return rgbd_masks(view.color, view.depth), None if len(seen) == len(gmap) else seen
 
     def map_keyframe(self, gmap: GaussianMap, optimizer: GaussianOptimizer, views: list[MappingView], *,
                      iterations: int, generator: torch.Generator, frame_index: int) -> MappingResult:

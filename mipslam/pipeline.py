@@ -339,6 +339,24 @@ def refine_after_correction(stages: Stages, state: SLAMState, keyframe_ids: list
     return iterations
 
 
+def refine_map(stages: Stages, state: SLAMState) -> int:
+    """The final refinement: ``mapping.final_iterations`` mapping steps after the last frame, one keyframe per
+    step, every keyframe once per pass in an order drawn from the run's generator; poses fixed. Returns the
+    steps taken (fewer if a loss turned non-finite; the map then keeps its last finite state)."""
+    iterations, count = stages.config.mapping.final_iterations, len(state.keyframe_frames)
+    if iterations == 0 or count == 0:
+        return 0
+    passes = -(-iterations // count)
+    order = torch.cat([torch.randperm(count, generator=state.generator) for _ in range(passes)])[:iterations]
+    views = (replace(_mapping_view(stages, state, int(k)), optimize_pose=False) for k in order)
+    losses = stages.mapper.refine(state.gaussian_map, state.optimizer, views)
+    if losses:
+        n = min(count, len(losses))
+        log.info("final refinement: %d steps over %d keyframes; mean mapping loss %.4f over the first %d steps, "
+                 "%.4f over the last %d", len(losses), count, sum(losses[:n]) / n, n, sum(losses[-n:]) / n, n)
+    return len(losses)
+
+
 def _keyframe_view(stages: Stages, state: SLAMState, keyframe_id: int) -> KeyframeView:
     record = state.keyframe_record(keyframe_id)
     frame = stages.frames[record.index]
@@ -465,6 +483,12 @@ def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evalu
     finally:
         bar.close()
     _checkpoint(folder, state, config)
+    # The refinement shapes this session's outputs, not the checkpoint: a run resumed to go further starts from
+    # the state the frames left (as an uninterrupted run would), and resuming a finished run repeats it exactly.
+    if config.mapping.final_iterations and len(state.gaussian_map):
+        start = time.perf_counter()
+        refine_map(stages, state)
+        state.add_timing_to_last_frame("refine", time.perf_counter() - start)
     from mipslam.outputs import write_run_outputs
 
     write_run_outputs(folder, state, sequence, config)

@@ -124,6 +124,14 @@ class SLAMState:
     def add_timing(self, stage: str, seconds: float) -> None:
         self.timings.setdefault(stage, []).append(float(seconds))
 
+    def add_timing_to_last_frame(self, stage: str, seconds: float) -> None:
+        """Charge a stage that runs once after the frames (the final refinement) to the last frame, with zeros
+        before it, so every stage's list stays one entry per frame."""
+        values = self.timings.setdefault(stage, [])
+        values.extend([0.0] * (len(self.frames) - len(values)))
+        if values:
+            values[-1] += float(seconds)
+
     # ------------------------------------------------------------------ checkpoint
 
     def to_checkpoint(self) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
