@@ -22,7 +22,7 @@ from mipslam.errors import MipslamError
 
 __all__ = ["PowerLaw", "SettingSummary", "Spread", "fit_power_law", "pareto_front", "spread", "summarize"]
 
-STAGE_ORDER = ("tracking", "keyframe", "mapping", "loop", "pgo")
+STAGE_ORDER = ("tracking", "keyframe", "mapping", "loop", "pgo", "refine")
 
 
 @dataclass(frozen=True)
