@@ -348,7 +348,7 @@ def refine_map(stages: Stages, state: SLAMState) -> int:
         return 0
     passes = -(-iterations // count)
     order = torch.cat([torch.randperm(count, generator=state.generator) for _ in range(passes)])[:iterations]
-    views = (replace(_mapping_view(stages, state, int(k)), optimize_pose=False) for k in order)
+    views = (_mapping_view(stages, state, int(k)) for k in order)  # Mapper.refine never moves a pose
     losses = stages.mapper.refine(state.gaussian_map, state.optimizer, views)
     if losses:
         n = min(count, len(losses))
