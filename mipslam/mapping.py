@@ -43,7 +43,7 @@ from mipslam.geometry.se3 import se3_exp, se3_inverse
 from mipslam.losses.frequency import frequency_loss
 from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, rgbd_l1_loss, rgbd_masks
 from mipslam.losses.regularizers import isotropy_loss
-from mipslam.rendering import frustum_indices, render_view
+from mipslam.rendering import frustum_indices, render_view, view_sampling_rates
 from mipslam.types import Intrinsics
 
 
@@ -112,6 +112,14 @@ class Mapper:
                                                cfg.add_min_distance_ratio))
         gmap.add(new, optimizer)
         return len(new)
+
+    @torch.no_grad()
+    def observe_sampling_rates(self, gmap: GaussianMap, views: Iterable[MappingView]) -> None:
+        """Raise each Gaussian's ``max_sampling_rate`` to its rate in every view that trains it (the
+        Mip-Splatting 3D filter's training cameras); kept whether or not ``render.filter_3d`` is on."""
+        for view in views:
+            T_cw = se3_inverse(view.T_wc).to(gmap.dtype)
+            gmap.observe_sampling_rates(view_sampling_rates(gmap.means, T_cw, view.intrinsics))
 
     @torch.no_grad()
     def prune(self, gmap: GaussianMap, optimizer: GaussianOptimizer, view: MappingView) -> int:
@@ -220,6 +228,7 @@ class Mapper:
                      iterations: int, generator: torch.Generator, frame_index: int) -> MappingResult:
         """Densify at the newest view (``views[0]``), optimise over all views, prune."""
         added = self.densify(gmap, optimizer, views[0], frame_index)
+        self.observe_sampling_rates(gmap, views)
         first, last, refined = self.optimize(gmap, optimizer, views, iterations, generator)
         pruned = self.prune(gmap, optimizer, views[0])
         return MappingResult(added, pruned, iterations, first, last, refined)

@@ -42,15 +42,57 @@ def render_view(
 ) -> RenderOutput:
     """Render the map at ``intrinsics`` from ``T_cw`` with the configured footprint mode and backend.
 
-    ``pose_only`` asks the renderer for gradients with respect to ``T_cw`` alone (tracking).
+    ``pose_only`` asks the renderer for gradients with respect to ``T_cw`` alone (tracking). With
+    ``render.filter_3d`` the 3D filter is sized by the map's own sampling rates
+    (:func:`filter_sampling_rates`), so it is the same at every resolution and pose that renders the map.
     """
     dtype, device = gaussians.means.dtype, gaussians.means.device
+    T_cw = T_cw.to(dtype=dtype, device=device)
+    K = intrinsics.matrix(dtype=dtype, device=device)
+    rates = filter_sampling_rates(gaussians, T_cw, K) if config.filter_3d else None
     return rasterize(
         gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.colors,
-        T_cw.to(dtype=dtype, device=device), intrinsics.matrix(dtype=dtype, device=device),
-        intrinsics.width, intrinsics.height, mode=mode or config.mode, backend=config.backend,
-        pose_only=pose_only, normalized_depth=normalized_depth, **render_options(config),
+        T_cw, K, intrinsics.width, intrinsics.height, mode=mode or config.mode, backend=config.backend,
+        pose_only=pose_only, normalized_depth=normalized_depth, max_sampling_rate=rates, **render_options(config),
     )
+
+
+@torch.no_grad()
+def filter_sampling_rates(
+    gaussians: ActivatedGaussians,
+    T_cw: torch.Tensor,  # [4, 4] world-to-camera of the render
+    K: torch.Tensor,  # [3, 3] intrinsics of the render, pixels
+) -> torch.Tensor:  # [N] px/m
+    """The sampling rate that sizes each Gaussian's 3D filter: the map's ``max_sampling_rate``.
+
+    Where the map does not know it (0: a PLY written without it, a checkpoint from before it existed)
+    this camera's ``max(fx, fy) / z`` stands in, which is what the renderer would use on its own.
+    """
+    means = gaussians.means.detach()
+    z = transform_points(T_cw.to(means), means)[:, 2]
+    own = torch.maximum(K[0, 0], K[1, 1]).to(means) / z.clamp_min(1e-6)  # [N]
+    stored = gaussians.max_sampling_rate
+    if stored is None:
+        return own
+    return torch.where(stored > 0, stored.to(means), own)
+
+
+@torch.no_grad()
+def view_sampling_rates(
+    means: torch.Tensor,  # [N, 3] world, metres
+    T_cw: torch.Tensor,  # [4, 4] world-to-camera of a training view
+    intrinsics: Intrinsics,
+) -> torch.Tensor:  # [N] px/m, 0 where the view does not see the centre
+    """Mip-Splatting's sampling rate of each centre in one training view (Yu et al., 2024, eq. 7):
+    ``max(fx, fy) / z`` where the centre lies in front of the camera and projects into the image
+    enlarged by 15 % of its size on every side (their visibility test), else 0."""
+    points_c = transform_points(T_cw.to(means), means.detach())  # [N, 3]
+    uv, z = project(points_c, intrinsics.matrix(dtype=means.dtype, device=means.device), min_depth=1e-6)
+    margin_u, margin_v = 0.15 * intrinsics.width, 0.15 * intrinsics.height
+    inside = ((z > 1e-6) & (uv[:, 0] >= -0.5 - margin_u) & (uv[:, 0] <= intrinsics.width - 0.5 + margin_u)
+              & (uv[:, 1] >= -0.5 - margin_v) & (uv[:, 1] <= intrinsics.height - 0.5 + margin_v))
+    rate = max(intrinsics.fx, intrinsics.fy) / z.clamp_min(1e-6)
+    return torch.where(inside, rate, torch.zeros_like(rate))
 
 
 @torch.no_grad()
@@ -86,5 +128,7 @@ def frustum_subset(gaussians: ActivatedGaussians, T_cw: torch.Tensor, intrinsics
                    config: RenderConfig) -> ActivatedGaussians:
     """The detached rows of a frozen map that :func:`frustum_indices` keeps (tracking)."""
     index = frustum_indices(gaussians.means, gaussians.scales, T_cw, intrinsics, config)
+    rates = gaussians.max_sampling_rate
     return ActivatedGaussians(*(t.detach().index_select(0, index) for t in (
-        gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.colors)))
+        gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.colors)),
+        max_sampling_rate=None if rates is None else rates.index_select(0, index))

@@ -374,7 +374,8 @@ def load_render_context(run_dir: str | Path, *, device: torch.device | str = "cp
     with torch.no_grad():
         activated = gaussian_map.activated()
         gaussians = ActivatedGaussians(*(t.detach() for t in (activated.means, activated.quats, activated.scales,
-                                                              activated.opacities, activated.colors)))
+                                                              activated.opacities, activated.colors)),
+                                       max_sampling_rate=activated.max_sampling_rate)
     return RunRenderContext(folder.root, config, info, intrinsics, gaussians, frames,
                             torch.from_numpy(np.array(est.T_wc)), Path(info["dataset"]["root"]))
 

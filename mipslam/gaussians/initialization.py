@@ -39,7 +39,7 @@ def gaussians_from_rgbd(
     dtype of ``depth`` (colour converted). Returns raw parameters for ``GaussianMap.add``:
     means [M, 3] world metres, quats_wxyz [M, 4] = (1, 0, 0, 0), log_scales [M, 3] = log sigma,
     opacity_logits [M] = logit(initial_opacity), colors_raw [M, 3] = logit(rgb), anchor and
-    created ids [M].
+    created ids [M], max_sampling_rate [M] = max(fx, fy) / z px/m.
     """
     height, width = depth.shape
     if color.shape[:2] != (height, width) or color.shape[-1] != 3:
@@ -77,4 +77,5 @@ def gaussians_from_rgbd(
         colors_raw=color_logit(rgb),
         anchor_keyframe=torch.full((count,), int(anchor_keyframe), dtype=torch.int64, device=device),
         created_frame=torch.full((count,), int(created_frame), dtype=torch.int64, device=device),
+        max_sampling_rate=torch.maximum(K[0, 0], K[1, 1]) / z,  # the creating view samples it at f / z
     )

@@ -18,11 +18,15 @@ Colours use a sigmoid rather than a clamp: a clamp has zero gradient once a valu
 [0, 1] and the colour can never come back, a sigmoid keeps every colour trainable and in range.
 Initial raw colours are ``logit(clamp(rgb, 1e-3, 1 - 1e-3))``.
 
-Buffers (not trained), int64 [N]:
-- ``anchor_keyframe``: id of the keyframe that created the Gaussian (index in the run's
+Buffers (not trained), [N]:
+- ``anchor_keyframe`` (int64): id of the keyframe that created the Gaussian (index in the run's
   keyframe list, 0-based; -1 = none, e.g. a map read from a PLY). After pose-graph optimisation
   each Gaussian moves rigidly with its anchor (:meth:`GaussianMap.transform_by_anchor`).
-- ``created_frame``: index of the frame whose pixels created it (-1 = unknown).
+- ``created_frame`` (int64): index of the frame whose pixels created it (-1 = unknown).
+- ``max_sampling_rate`` (the map's float dtype): the highest sampling rate, ``focal / depth`` in
+  pixels per metre, among the keyframes that trained the Gaussian (0 = unknown). It sizes the
+  Mip-Splatting 3D smoothing filter (``render.filter_3d``), which belongs to the map and so must not
+  change with the camera that renders it (Yu et al., 2024, section 4.1).
 
 Resizing keeps a :class:`mipslam.gaussians.optimizer.GaussianOptimizer` aligned: pass it to
 :meth:`GaussianMap.add` / :meth:`GaussianMap.remove` and its Adam moments are resized with the
@@ -45,7 +49,9 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 PARAMETER_NAMES: tuple[str, ...] = ("means", "quats_wxyz", "log_scales", "opacity_logits", "colors_raw")
-BUFFER_NAMES: tuple[str, ...] = ("anchor_keyframe", "created_frame")
+BUFFER_NAMES: tuple[str, ...] = ("anchor_keyframe", "created_frame", "max_sampling_rate")
+#: Buffers that hold ids (int64); the others take the map's floating dtype.
+ID_BUFFER_NAMES: tuple[str, ...] = ("anchor_keyframe", "created_frame")
 TRAILING_SHAPES: dict[str, tuple[int, ...]] = {
     "means": (3,),
     "quats_wxyz": (4,),
@@ -54,6 +60,7 @@ TRAILING_SHAPES: dict[str, tuple[int, ...]] = {
     "colors_raw": (3,),
     "anchor_keyframe": (),
     "created_frame": (),
+    "max_sampling_rate": (),
 }
 COLOR_EPS = 1e-3
 QUAT_NORM_EPS = 1e-12
@@ -89,6 +96,7 @@ class ActivatedGaussians:
     scales     [N, 3] std-devs in metres (linear)
     opacities  [N]    in (0, 1)
     colors     [N, 3] RGB in (0, 1)
+    max_sampling_rate [N] px/m the map's sampling rates for the 3D filter (0 = unknown), or None
     """
 
     means: torch.Tensor
@@ -96,6 +104,7 @@ class ActivatedGaussians:
     scales: torch.Tensor
     opacities: torch.Tensor
     colors: torch.Tensor
+    max_sampling_rate: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
@@ -106,7 +115,8 @@ class GaussianParameters:
     """A batch of Gaussians in raw (unconstrained) form: what :meth:`GaussianMap.add` takes.
 
     means [N, 3], quats_wxyz [N, 4], log_scales [N, 3], opacity_logits [N], colors_raw [N, 3]
-    (floating, one device), anchor_keyframe [N] int64, created_frame [N] int64.
+    (floating, one device), anchor_keyframe [N] int64, created_frame [N] int64, max_sampling_rate [N]
+    floating, px/m (None: zeros, unknown).
     """
 
     means: torch.Tensor
@@ -116,8 +126,12 @@ class GaussianParameters:
     colors_raw: torch.Tensor
     anchor_keyframe: torch.Tensor
     created_frame: torch.Tensor
+    max_sampling_rate: torch.Tensor | None = None
 
     def __post_init__(self):
+        if self.max_sampling_rate is None and isinstance(self.means, torch.Tensor):
+            object.__setattr__(self, "max_sampling_rate", torch.zeros(self.means.shape[:1], dtype=self.means.dtype,
+                                                                      device=self.means.device))
         count = self.means.shape[0] if self.means.dim() >= 1 else -1
         for f in fields(self):
             value = getattr(self, f.name)
@@ -125,9 +139,9 @@ class GaussianParameters:
             if not isinstance(value, torch.Tensor) or tuple(value.shape) != expected:
                 shape = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
                 raise ValueError(f"GaussianParameters.{f.name}: expected shape {expected}, got {shape}")
-            if f.name in BUFFER_NAMES and value.dtype != torch.int64:
+            if f.name in ID_BUFFER_NAMES and value.dtype != torch.int64:
                 raise ValueError(f"GaussianParameters.{f.name}: expected int64, got {value.dtype}")
-            if f.name in PARAMETER_NAMES and not value.is_floating_point():
+            if f.name not in ID_BUFFER_NAMES and not value.is_floating_point():
                 raise ValueError(f"GaussianParameters.{f.name}: expected a floating dtype, got {value.dtype}")
 
     def __len__(self) -> int:
@@ -136,12 +150,14 @@ class GaussianParameters:
     @classmethod
     def from_activated(cls, means: torch.Tensor, quats_wxyz: torch.Tensor, scales: torch.Tensor,
                        opacities: torch.Tensor, colors: torch.Tensor, anchor_keyframe: torch.Tensor | int = -1,
-                       created_frame: torch.Tensor | int = -1) -> "GaussianParameters":
+                       created_frame: torch.Tensor | int = -1,
+                       max_sampling_rate: torch.Tensor | None = None) -> "GaussianParameters":
         """Raw parameters from activated values (inverse activations; opacities/colours clamped
         to [1e-3, 1 - 1e-3] before the logit).
 
         means [N, 3], quats_wxyz [N, 4] (need not be unit), scales [N, 3] > 0 metres,
-        opacities [N] in [0, 1], colors [N, 3] in [0, 1]; anchor/created: int64 [N] or one int.
+        opacities [N] in [0, 1], colors [N, 3] in [0, 1]; anchor/created: int64 [N] or one int;
+        max_sampling_rate [N] px/m or None (unknown).
         """
         n = means.shape[0]
 
@@ -158,6 +174,7 @@ class GaussianParameters:
             colors_raw=color_logit(colors),
             anchor_keyframe=ids(anchor_keyframe),
             created_frame=ids(created_frame),
+            max_sampling_rate=max_sampling_rate,
         )
 
     @classmethod
@@ -186,7 +203,7 @@ class GaussianMap:
             value = getattr(params, name).detach().to(device=device, dtype=dtype).clone()
             setattr(self, name, value.requires_grad_(True))
         for name in BUFFER_NAMES:
-            setattr(self, name, getattr(params, name).detach().to(device=device).clone())
+            setattr(self, name, getattr(params, name).detach().to(device=device, dtype=self._buffer_dtype(name)).clone())
 
     # --------------------------------------------------------------------------- construction
     @classmethod
@@ -197,7 +214,11 @@ class GaussianMap:
         return cls(GaussianParameters(
             means=zeros(0, 3), quats_wxyz=zeros(0, 4), log_scales=zeros(0, 3), opacity_logits=zeros(0),
             colors_raw=zeros(0, 3), anchor_keyframe=zeros(0, kind=torch.int64), created_frame=zeros(0, kind=torch.int64),
+            max_sampling_rate=zeros(0),
         ))
+
+    def _buffer_dtype(self, name: str) -> torch.dtype:
+        return torch.int64 if name in ID_BUFFER_NAMES else self.means.dtype
 
     # --------------------------------------------------------------------------- inspection
     def __len__(self) -> int:
@@ -231,11 +252,13 @@ class GaussianMap:
         ``index`` [M] int64: only those rows (gradients flow back to them; the other rows get zeros).
         """
         if index is None:
-            means, quats, log_scales, opacity_logits, colors_raw = (
-                self.means, self.quats_wxyz, self.log_scales, self.opacity_logits, self.colors_raw)
+            means, quats, log_scales, opacity_logits, colors_raw, rates = (
+                self.means, self.quats_wxyz, self.log_scales, self.opacity_logits, self.colors_raw,
+                self.max_sampling_rate)
         else:
-            means, quats, log_scales, opacity_logits, colors_raw = (t.index_select(0, index) for t in (
-                self.means, self.quats_wxyz, self.log_scales, self.opacity_logits, self.colors_raw))
+            means, quats, log_scales, opacity_logits, colors_raw, rates = (t.index_select(0, index) for t in (
+                self.means, self.quats_wxyz, self.log_scales, self.opacity_logits, self.colors_raw,
+                self.max_sampling_rate))
         norm = quats.norm(dim=-1, keepdim=True).clamp_min(QUAT_NORM_EPS)
         return ActivatedGaussians(
             means=means,
@@ -243,6 +266,7 @@ class GaussianMap:
             scales=torch.exp(log_scales),
             opacities=torch.sigmoid(opacity_logits),
             colors=torch.sigmoid(colors_raw),
+            max_sampling_rate=rates,
         )
 
     # --------------------------------------------------------------------------- resizing
@@ -261,7 +285,7 @@ class GaussianMap:
             extra = getattr(new, name).detach().to(device=self.device, dtype=self.dtype)
             setattr(self, name, torch.cat([old[name].detach(), extra]).requires_grad_(True))
         for name in BUFFER_NAMES:
-            extra = getattr(new, name).to(device=self.device, dtype=torch.int64)
+            extra = getattr(new, name).to(device=self.device, dtype=self._buffer_dtype(name))
             setattr(self, name, torch.cat([getattr(self, name), extra]))
         if optimizer is not None:
             optimizer.on_map_resized(old, self.parameters(), lambda state: torch.cat(
@@ -291,6 +315,13 @@ class GaussianMap:
             optimizer.on_map_resized(old, self.parameters(), lambda state: state[keep].clone())
         logger.debug("removed %d Gaussians (now %d)", removed, len(self))
         return removed
+
+    @torch.no_grad()
+    def observe_sampling_rates(self, rates: torch.Tensor) -> None:
+        """Raise ``max_sampling_rate`` to ``rates`` [N] (px/m, 0 where a view does not see the Gaussian)."""
+        if tuple(rates.shape) != (len(self),):
+            raise ValueError(f"sampling rates must have shape ({len(self)},), got {tuple(rates.shape)}")
+        self.max_sampling_rate = torch.maximum(self.max_sampling_rate, rates.to(self.max_sampling_rate))
 
     # --------------------------------------------------------------------------- pose-graph correction
     @torch.no_grad()
@@ -327,7 +358,7 @@ class GaussianMap:
 
     # --------------------------------------------------------------------------- state
     def state_dict(self) -> dict[str, torch.Tensor]:
-        """Plain tensors (detached clones): the five parameters and the two buffers."""
+        """Plain tensors (detached clones): the five parameters and the three buffers."""
         return {name: getattr(self, name).detach().clone() for name in PARAMETER_NAMES + BUFFER_NAMES}
 
     def load_state_dict(self, state: Mapping[str, torch.Tensor]) -> None:
@@ -340,13 +371,15 @@ class GaussianMap:
     @classmethod
     def from_state_dict(cls, state: Mapping[str, torch.Tensor], *, device: torch.device | str | None = None,
                         dtype: torch.dtype | None = None) -> "GaussianMap":
-        missing = [name for name in PARAMETER_NAMES + BUFFER_NAMES if name not in state]
+        missing = [name for name in PARAMETER_NAMES + ID_BUFFER_NAMES if name not in state]
         if missing:
             raise MipslamError(f"Gaussian map state lacks {', '.join(missing)}")
         device = device if device is not None else state["means"].device
         dtype = dtype if dtype is not None else state["means"].dtype
         values = {name: state[name].to(device=device, dtype=dtype) for name in PARAMETER_NAMES}
-        values.update({name: state[name].to(device=device, dtype=torch.int64) for name in BUFFER_NAMES})
+        values.update({name: state[name].to(device=device, dtype=torch.int64) for name in ID_BUFFER_NAMES})
+        if "max_sampling_rate" in state:  # absent from checkpoints written before it existed: unknown
+            values["max_sampling_rate"] = state["max_sampling_rate"].to(device=device, dtype=dtype)
         try:
             return cls(GaussianParameters(**values))
         except ValueError as exc:

@@ -9,6 +9,7 @@ order (what common splat viewers read)::
     opacity            opacity logit (viewers apply a sigmoid)
     scale_0..2         log std-devs, metres (viewers apply exp)
     rot_0..3           rotation quaternion (w, x, y, z), not necessarily unit (viewers normalise)
+    max_sampling_rate  (mipslam's map only, optional) px/m that sizes the 3D filter; viewers ignore it
 
 :func:`write_ply` writes atomically (temporary file, fsync, rename). :func:`read_ply` validates
 the header (format, element, property names and types), the data size and finiteness, and
@@ -35,6 +36,7 @@ PLY_PROPERTIES: tuple[str, ...] = (
     "x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
     "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3",
 )
+SAMPLING_RATE_PROPERTY = "max_sampling_rate"
 MAX_HEADER_BYTES = 1 << 16
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
@@ -58,7 +60,7 @@ class SplatPly:
     """The fields of a 3DGS PLY as float32 CPU tensors (file values, no activation applied).
 
     means [N, 3], f_dc [N, 3], opacity_logits [N], log_scales [N, 3], quats_wxyz [N, 4],
-    normals [N, 3] (zeros when written by mipslam).
+    normals [N, 3] (zeros when written by mipslam), max_sampling_rate [N] px/m or None (not in the file).
     """
 
     means: torch.Tensor
@@ -67,15 +69,16 @@ class SplatPly:
     log_scales: torch.Tensor
     quats_wxyz: torch.Tensor
     normals: torch.Tensor | None = None
+    max_sampling_rate: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
 
 
-def _header(count: int) -> bytes:
+def _header(count: int, extra: tuple[str, ...] = ()) -> bytes:
     lines = ["ply", "format binary_little_endian 1.0", "comment written by mipslam (3DGS layout, SH degree 0)",
              f"element vertex {count}"]
-    lines += [f"property float {name}" for name in PLY_PROPERTIES]
+    lines += [f"property float {name}" for name in PLY_PROPERTIES + extra]
     lines.append("end_header")
     return ("\n".join(lines) + "\n").encode("ascii")
 
@@ -87,13 +90,18 @@ def write_ply(path: str | Path, splats: SplatPly) -> Path:
     columns = [splats.means, normals, splats.f_dc, splats.opacity_logits.reshape(n, 1), splats.log_scales,
                splats.quats_wxyz]
     expected = [3, 3, 3, 1, 3, 4]
+    extra: tuple[str, ...] = ()
+    if splats.max_sampling_rate is not None:
+        columns.append(splats.max_sampling_rate.reshape(-1, 1))
+        expected.append(1)
+        extra = (SAMPLING_RATE_PROPERTY,)
     for column, width in zip(columns, expected):
         if tuple(column.shape) != (n, width):
             raise MipslamError(f"{path}: cannot write PLY, a field has shape {tuple(column.shape)}, expected ({n}, {width})")
-    table = torch.cat([c.detach().to(device="cpu", dtype=torch.float32) for c in columns], dim=1)  # [N, 17]
+    table = torch.cat([c.detach().to(device="cpu", dtype=torch.float32) for c in columns], dim=1)  # [N, 17 (+1)]
     data = np.ascontiguousarray(table.numpy().astype("<f4", copy=False))
     with atomic_write(path) as handle:
-        handle.write(_header(n))
+        handle.write(_header(n, extra))
         handle.write(data.tobytes())
     logger.debug("wrote %d Gaussians to %s", n, path)
     return Path(path)
@@ -192,6 +200,7 @@ def read_ply(path: str | Path) -> SplatPly:
     log_scales = columns("scale_0", "scale_1", "scale_2")
     quats = columns("rot_0", "rot_1", "rot_2", "rot_3")
     normals = columns("nx", "ny", "nz") if "nx" in vertex_dtype.names else torch.zeros((count, 3))
+    rates = columns(SAMPLING_RATE_PROPERTY)[:, 0].contiguous() if SAMPLING_RATE_PROPERTY in vertex_dtype.names else None
     for name, values in (("position", means), ("f_dc", f_dc), ("opacity", opacity), ("scale", log_scales),
                          ("rotation", quats)):
         finite = torch.isfinite(values)
@@ -202,8 +211,13 @@ def read_ply(path: str | Path) -> SplatPly:
     zero_quat = quats.norm(dim=1) == 0
     if bool(zero_quat.any()):
         raise DatasetError(path, f"vertex {int(torch.nonzero(zero_quat)[0, 0])} has a zero rotation quaternion")
+    if rates is not None:
+        bad = ~(torch.isfinite(rates) & (rates >= 0))
+        if bool(bad.any()):
+            raise DatasetError(path, f"vertex {int(torch.nonzero(bad)[0, 0])} has a negative or non-finite "
+                                     f"{SAMPLING_RATE_PROPERTY}; the file is corrupt")
     return SplatPly(means=means, f_dc=f_dc, opacity_logits=opacity, log_scales=log_scales, quats_wxyz=quats,
-                    normals=normals)
+                    normals=normals, max_sampling_rate=rates)
 
 
 # ----------------------------------------------------------------------------- GaussianMap <-> PLY
@@ -214,7 +228,9 @@ def splats_from_map(gaussian_map: GaussianMap, filter_3d_variance: torch.Tensor 
 
     filter_3d_variance [N] (metres^2, optional): a Mip-Splatting 3D smoothing filter to bake in
     for viewers that do not apply it: ``Sigma' = Sigma + v I`` gives scales ``sqrt(s^2 + v)``
-    and opacity ``o * sqrt(det Sigma / det Sigma')`` (Yu et al., 2024).
+    and opacity ``o * sqrt(det Sigma / det Sigma')`` (Yu et al., 2024). Without it the map's
+    ``max_sampling_rate`` is kept as an extra property, so mipslam can apply the filter when it reads
+    the file back; with it baked in the rates are left out (the filter must not apply twice).
     """
     with torch.no_grad():
         log_scales = gaussian_map.log_scales.detach()
@@ -233,6 +249,8 @@ def splats_from_map(gaussian_map: GaussianMap, filter_3d_variance: torch.Tensor 
             opacity_logits=opacity_logits.cpu().float(),
             log_scales=log_scales.cpu().float(),
             quats_wxyz=gaussian_map.quats_wxyz.detach().cpu().float(),
+            max_sampling_rate=None if filter_3d_variance is not None else
+            gaussian_map.max_sampling_rate.detach().cpu().float(),
         )
 
 
@@ -242,7 +260,8 @@ def write_map_ply(path: str | Path, gaussian_map: GaussianMap, filter_3d_varianc
 
 
 def read_map_ply(path: str | Path, *, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> GaussianMap:
-    """A GaussianMap from a 3DGS PLY (anchors and creation frames -1: unknown).
+    """A GaussianMap from a 3DGS PLY (anchors and creation frames -1: unknown; sampling rates 0, unknown,
+    unless the file has mipslam's ``max_sampling_rate`` property).
 
     Colours: ``colors_raw = logit(clamp(f_dc * C0 + 0.5, 1e-3, 1 - 1e-3))``.
     """
@@ -256,5 +275,7 @@ def read_map_ply(path: str | Path, *, device: torch.device | str = "cpu", dtype:
         colors_raw=color_logit(f_dc_to_rgb(splats.f_dc)).to(device=device, dtype=dtype),
         anchor_keyframe=torch.full((n,), -1, dtype=torch.int64, device=device),
         created_frame=torch.full((n,), -1, dtype=torch.int64, device=device),
+        max_sampling_rate=None if splats.max_sampling_rate is None else
+        splats.max_sampling_rate.to(device=device, dtype=dtype),
     )
     return GaussianMap(params)
