@@ -539,6 +539,10 @@ def _protocol(context: RunRenderContext, options: RenderEvalOptions, modes, scal
         },
         "modes": list(modes),
         "renderer": {"run_mode": render_cfg.mode, "backend": render_cfg.backend, "filter_3d": render_cfg.filter_3d,
+                     **({"filter_3d_variance": f"{render_cfg.filter_3d_scale} / nu^2 per Gaussian, nu = its highest "
+                                               "sampling rate (f / z) among the keyframes that trained it "
+                                               "(map.ply max_sampling_rate), the same at every scale"}
+                        if render_cfg.filter_3d else {}),
                      "eaa_max_nodes": render_cfg.eaa_max_nodes, "eaa_gamma": render_cfg.eaa_gamma,
                      "eaa_eta": render_cfg.eaa_eta, "eaa_tau": render_cfg.eaa_tau,
                      "eaa_k_sigma": render_cfg.eaa_k_sigma, "near_plane": render_cfg.near_plane},
