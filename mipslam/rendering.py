@@ -49,7 +49,7 @@ def render_view(
     dtype, device = gaussians.means.dtype, gaussians.means.device
     T_cw = T_cw.to(dtype=dtype, device=device)
     K = intrinsics.matrix(dtype=dtype, device=device)
-    rates = filter_sampling_rates(gaussians, T_cw, K) if config.filter_3d else None
+    rates = filter_sampling_rates(gaussians, T_cw, K) if config.filter_3d else None  # None: the renderer's own
     return rasterize(
         gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.colors,
         T_cw, K, intrinsics.width, intrinsics.height, mode=mode or config.mode, backend=config.backend,
@@ -62,18 +62,21 @@ def filter_sampling_rates(
     gaussians: ActivatedGaussians,
     T_cw: torch.Tensor,  # [4, 4] world-to-camera of the render
     K: torch.Tensor,  # [3, 3] intrinsics of the render, pixels
-) -> torch.Tensor:  # [N] px/m
+) -> torch.Tensor | None:  # [N] px/m
     """The sampling rate that sizes each Gaussian's 3D filter: the map's ``max_sampling_rate``.
 
     Where the map does not know it (0: a PLY written without it, a checkpoint from before it existed)
-    this camera's ``max(fx, fy) / z`` stands in, which is what the renderer would use on its own.
+    this camera's ``max(fx, fy) / z`` stands in. When no rate is known at all the result is None, and the
+    renderer computes that same per-camera value itself.
     """
+    stored = gaussians.max_sampling_rate
+    if stored is None or not bool((stored > 0).any()):
+        return None
     means = gaussians.means.detach()
+    if bool((stored > 0).all()):
+        return stored.to(means)
     z = transform_points(T_cw.to(means), means)[:, 2]
     own = torch.maximum(K[0, 0], K[1, 1]).to(means) / z.clamp_min(1e-6)  # [N]
-    stored = gaussians.max_sampling_rate
-    if stored is None:
-        return own
     return torch.where(stored > 0, stored.to(means), own)
 
 
@@ -83,7 +86,7 @@ def view_sampling_rates(
     T_cw: torch.Tensor,  # [4, 4] world-to-camera of a training view
     intrinsics: Intrinsics,
 ) -> torch.Tensor:  # [N] px/m, 0 where the view does not see the centre
-    """Mip-Splatting's sampling rate of each centre in one training view (Yu et al., 2024, eq. 7):
+    """Mip-Splatting's sampling rate of each centre in one training view (Yu et al., 2024, section 4.1):
     ``max(fx, fy) / z`` where the centre lies in front of the camera and projects into the image
     enlarged by 15 % of its size on every side (their visibility test), else 0."""
     points_c = transform_points(T_cw.to(means), means.detach())  # [N, 3]

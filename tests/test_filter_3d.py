@@ -20,7 +20,7 @@ from mipslam.gaussians.optimizer import GaussianOptimizer
 from mipslam.geometry import se3_inverse
 from mipslam.io.ply import read_map_ply, splats_from_map, write_map_ply, write_ply
 from mipslam.mapping import Mapper, MappingView
-from mipslam.rendering import render_view, view_sampling_rates
+from mipslam.rendering import filter_sampling_rates, render_view, view_sampling_rates
 from mipslam.types import Intrinsics
 
 INTRINSICS = Intrinsics(fx=40.0, fy=40.0, cx=23.5, cy=17.5, width=48, height=36)
@@ -81,6 +81,18 @@ def test_unknown_rates_fall_back_to_the_rendering_camera():
     same = render_view(unknown.activated(), torch.eye(4), INTRINSICS, cfg)  # this camera is the creating one
     stored = render_view(gmap.activated(), torch.eye(4), INTRINSICS, cfg)
     assert torch.allclose(same.color, stored.color, atol=1e-5)
+
+
+def test_a_map_with_some_rates_unknown_uses_the_camera_for_those_rows_only():
+    gmap = wall_map(torch.eye(4, dtype=torch.float64))  # every centre at z = 2 m: the camera's rate is 20 px/m
+    gmap.max_sampling_rate[::2] = 0.0
+    gmap.max_sampling_rate[1::2] = 55.0
+    K = INTRINSICS.matrix().float()
+    rates = filter_sampling_rates(gmap.activated(), torch.eye(4), K)
+    assert torch.allclose(rates[::2], torch.full_like(rates[::2], 20.0))
+    assert torch.equal(rates[1::2], torch.full_like(rates[1::2], 55.0))
+    gmap.max_sampling_rate.zero_()
+    assert filter_sampling_rates(gmap.activated(), torch.eye(4), K) is None  # the renderer's own, as before
 
 
 def test_view_sampling_rates_see_the_image_plus_a_margin():
