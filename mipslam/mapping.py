@@ -116,7 +116,8 @@ class Mapper:
     @torch.no_grad()
     def observe_sampling_rates(self, gmap: GaussianMap, views: Iterable[MappingView]) -> None:
         """Raise each Gaussian's ``max_sampling_rate`` to its rate in every view that trains it (the
-        Mip-Splatting 3D filter's training cameras); kept whether or not ``render.filter_3d`` is on."""
+        Mip-Splatting 3D filter's training cameras). :meth:`map_keyframe` calls it when ``render.filter_3d``
+        is on; otherwise each Gaussian keeps the rate of the view that created it."""
         for view in views:
             T_cw = se3_inverse(view.T_wc).to(gmap.dtype)
             gmap.observe_sampling_rates(view_sampling_rates(gmap.means, T_cw, view.intrinsics))
@@ -228,7 +229,8 @@ class Mapper:
                      iterations: int, generator: torch.Generator, frame_index: int) -> MappingResult:
         """Densify at the newest view (``views[0]``), optimise over all views, prune."""
         added = self.densify(gmap, optimizer, views[0], frame_index)
-        self.observe_sampling_rates(gmap, views)
+        if self.render_config.filter_3d:  # 3-4 % of a balanced keyframe's mapping: only when it is used
+            self.observe_sampling_rates(gmap, views)
         first, last, refined = self.optimize(gmap, optimizer, views, iterations, generator)
         pruned = self.prune(gmap, optimizer, views[0])
         return MappingResult(added, pruned, iterations, first, last, refined)

@@ -111,7 +111,7 @@ def test_mapping_keeps_the_highest_rate_of_the_views_that_train_a_gaussian():
     near[2, 3] = 0.5  # half a metre closer to the wall: f / z = 40 / 1.5
     gmap = GaussianMap.empty()
     optimizer = GaussianOptimizer.from_config(gmap, MappingConfig())
-    mapper = Mapper(MappingConfig(densify_pixel_stride=4), RenderConfig(backend="torch"))
+    mapper = Mapper(MappingConfig(densify_pixel_stride=4), RenderConfig(backend="torch", filter_3d=True))
     views = [MappingView(1, color, depth, far, torch.zeros(2), INTRINSICS, False),
              MappingView(0, color, torch.full_like(depth, 1.5), near, torch.zeros(2), INTRINSICS, False)]
     mapper.map_keyframe(gmap, optimizer, views, iterations=2, generator=torch.Generator().manual_seed(0),

@@ -24,7 +24,8 @@ Buffers (not trained), [N]:
   each Gaussian moves rigidly with its anchor (:meth:`GaussianMap.transform_by_anchor`).
 - ``created_frame`` (int64): index of the frame whose pixels created it (-1 = unknown).
 - ``max_sampling_rate`` (the map's float dtype): the highest sampling rate, ``focal / depth`` in
-  pixels per metre, among the keyframes that trained the Gaussian (0 = unknown). It sizes the
+  pixels per metre, among the keyframes that trained the Gaussian (0 = unknown; with the filter off,
+  mapping leaves it at the creating view's rate). It sizes the
   Mip-Splatting 3D smoothing filter (``render.filter_3d``), which belongs to the map and so must not
   change with the camera that renders it (Yu et al., 2024, section 4.1).
 
