@@ -10,7 +10,7 @@ import torch
 
 from mipslam.config import RenderConfig
 from mipslam.gaussians import ActivatedGaussians
-from mipslam.geometry.camera import project
+from mipslam.geometry.camera import project, sampling_rate
 from mipslam.geometry.se3 import transform_points
 from mipslam.render import RenderOutput, rasterize
 from mipslam.types import Intrinsics
@@ -70,14 +70,14 @@ def filter_sampling_rates(
     renderer computes that same per-camera value itself.
     """
     stored = gaussians.max_sampling_rate
-    if stored is None or not bool((stored > 0).any()):
+    known = None if stored is None else stored > 0  # [N]
+    if known is None or not bool(known.any()):
         return None
     means = gaussians.means.detach()
-    if bool((stored > 0).all()):
+    if bool(known.all()):
         return stored.to(means)
     z = transform_points(T_cw.to(means), means)[:, 2]
-    own = torch.maximum(K[0, 0], K[1, 1]).to(means) / z.clamp_min(1e-6)  # [N]
-    return torch.where(stored > 0, stored.to(means), own)
+    return torch.where(known, stored.to(means), sampling_rate(K.to(means), z.clamp_min(1e-6)))
 
 
 @torch.no_grad()
@@ -90,11 +90,12 @@ def view_sampling_rates(
     ``max(fx, fy) / z`` where the centre lies in front of the camera and projects into the image
     enlarged by 15 % of its size on every side (their visibility test), else 0."""
     points_c = transform_points(T_cw.to(means), means.detach())  # [N, 3]
-    uv, z = project(points_c, intrinsics.matrix(dtype=means.dtype, device=means.device), min_depth=1e-6)
+    K = intrinsics.matrix(dtype=means.dtype, device=means.device)
+    uv, z = project(points_c, K, min_depth=1e-6)
     margin_u, margin_v = 0.15 * intrinsics.width, 0.15 * intrinsics.height
     inside = ((z > 1e-6) & (uv[:, 0] >= -0.5 - margin_u) & (uv[:, 0] <= intrinsics.width - 0.5 + margin_u)
               & (uv[:, 1] >= -0.5 - margin_v) & (uv[:, 1] <= intrinsics.height - 0.5 + margin_v))
-    rate = max(intrinsics.fx, intrinsics.fy) / z.clamp_min(1e-6)
+    rate = sampling_rate(K, z.clamp_min(1e-6))
     return torch.where(inside, rate, torch.zeros_like(rate))
 
 

@@ -14,7 +14,7 @@ import math
 import torch
 
 from mipslam.gaussians.model import GaussianParameters, color_logit
-from mipslam.geometry.camera import unproject
+from mipslam.geometry.camera import sampling_rate, unproject
 from mipslam.geometry.se3 import transform_points
 
 
@@ -77,5 +77,5 @@ def gaussians_from_rgbd(
         colors_raw=color_logit(rgb),
         anchor_keyframe=torch.full((count,), int(anchor_keyframe), dtype=torch.int64, device=device),
         created_frame=torch.full((count,), int(created_frame), dtype=torch.int64, device=device),
-        max_sampling_rate=torch.maximum(K[0, 0], K[1, 1]) / z,  # the creating view samples it at f / z
+        max_sampling_rate=sampling_rate(K, z),  # the rate of the view that creates it
     )

@@ -1,5 +1,5 @@
 """Pure geometry on tensors: SE(3)/SO(3) and the pinhole camera."""
-from mipslam.geometry.camera import pixel_grid, project, unproject, unproject_depth
+from mipslam.geometry.camera import pixel_grid, project, sampling_rate, unproject, unproject_depth
 from mipslam.geometry.se3 import (
     hat,
     quat_wxyz_to_rotmat,
@@ -23,5 +23,5 @@ __all__ = [
     "hat", "vee", "so3_exp", "so3_log", "se3_exp", "se3_log", "se3_inverse", "se3_compose", "se3_from_rt",
     "quat_wxyz_to_rotmat", "rotmat_to_quat_wxyz", "quat_xyzw_to_wxyz", "quat_wxyz_to_xyzw",
     "transform_points", "rigidity_error", "rotation_angle",
-    "pixel_grid", "project", "unproject", "unproject_depth",
+    "pixel_grid", "project", "sampling_rate", "unproject", "unproject_depth",
 ]

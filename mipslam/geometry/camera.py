@@ -29,6 +29,12 @@ def project(points_c: torch.Tensor, K: torch.Tensor, min_depth: float = 1e-6) ->
     return torch.stack([u, v], -1), z
 
 
+def sampling_rate(K: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+    """Pixels per metre a camera samples at depth z: ``max(fx, fy) / z`` (Mip-Splatting's sampling rate,
+    which sizes its 3D filter).  K [3, 3], depth [...] metres -> [...] px/m (differentiable; no clamp)."""
+    return torch.maximum(K[0, 0], K[1, 1]).to(depth) / depth
+
+
 def unproject(uv: torch.Tensor, depth: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     """Back-project pixels with depth (z, metres) to camera-frame points.
 

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
+from mipslam.geometry.camera import sampling_rate
 from mipslam.geometry.se3 import quat_wxyz_to_rotmat
 
 #: Added to both diagonal entries of every 2D covariance (px^2): sigma >= 1e-4 px, so conics stay finite.
@@ -78,8 +79,7 @@ def filter_3d_variance(depths: torch.Tensor, K: torch.Tensor, filter_scale: floa
     depths [N] metres, K [3, 3], max_sampling_rate [N] or None -> [N] m^2.
     """
     if max_sampling_rate is None:
-        focal = torch.maximum(K[0, 0], K[1, 1])
-        max_sampling_rate = focal / depths
+        max_sampling_rate = sampling_rate(K, depths)
     return filter_scale / (max_sampling_rate * max_sampling_rate)
 
 
