@@ -168,9 +168,7 @@ def track(stages: Stages, state: SLAMState, frame: Frame, T_wc_first: torch.Tens
     prediction = constant_velocity_prediction(poses[-1], poses[-2] if len(poses) == 2 else None)
     if len(state.gaussian_map) == 0:
         return initial_result(prediction)
-    gaussians = state.gaussian_map.activated()
-    detached = type(gaussians)(*(t.detach() for t in (gaussians.means, gaussians.quats, gaussians.scales,
-                                                       gaussians.opacities, gaussians.colors)))
+    detached = state.gaussian_map.activated().detached()
     result = stages.tracker.track(detached, frame, prediction, state.running_loss)
     result = relocalise(stages, state, frame, detached, result)
     return replace(result, T_wc=nearest_rigid(result.T_wc))

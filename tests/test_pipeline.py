@@ -320,3 +320,32 @@ def test_mapping_a_view_without_the_gaussians_it_cannot_draw_changes_nothing(tin
     assert ends[0][0] == pytest.approx(ends[1][0], rel=1e-5)
     for name in ("means", "log_scales", "opacity_logits", "colors_raw"):
         assert torch.allclose(getattr(ends[0][1], name), getattr(ends[1][1], name), atol=1e-5), name
+
+
+def test_tracking_renders_the_map_with_its_own_filter_rates(tiny_sequence, tmp_path, monkeypatch):
+    """With ``render.filter_3d`` the frozen map that tracking sees keeps its per-Gaussian sampling rates, so
+    tracking renders the same filtered map that mapping fitted (before session 12 it fell back to the
+    tracked camera's own rate)."""
+    seen = []
+    original = Tracker.track
+
+    def recording_track(self, gaussians, *args, **kwargs):
+        seen.append(gaussians.max_sampling_rate)
+        return original(self, gaussians, *args, **kwargs)
+
+    monkeypatch.setattr(Tracker, "track", recording_track)
+    run_slam(tiny_config(tiny_sequence, "render.filter_3d=true", "dataset.max_frames=3"), tmp_path / "run",
+             evaluate=False)
+    assert len(seen) == 2  # frames 1 and 2 (frame 0 starts the map)
+    for rates in seen:
+        assert rates is not None and not rates.requires_grad and torch.all(rates > 0)
+
+
+def test_detached_gaussians_keep_their_rates_and_leave_the_graph():
+    leaf = torch.ones(2, 3, requires_grad=True)
+    gaussians = ActivatedGaussians(leaf * 1.0, torch.tensor([[1.0, 0, 0, 0]] * 2), leaf * 0.1, leaf[:, 0] * 0.5,
+                                   leaf * 0.2, max_sampling_rate=torch.tensor([10.0, 0.0]))
+    frozen = gaussians.detached()
+    assert not any(t.requires_grad for t in (frozen.means, frozen.scales, frozen.opacities, frozen.colors))
+    assert frozen.max_sampling_rate.tolist() == [10.0, 0.0]
+    assert ActivatedGaussians(*(t.detach() for t in (leaf, leaf, leaf, leaf[:, 0], leaf))).detached().max_sampling_rate is None

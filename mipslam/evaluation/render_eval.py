@@ -372,10 +372,7 @@ def load_render_context(run_dir: str | Path, *, device: torch.device | str = "cp
                             width=int(k["width"]), height=int(k["height"]))
     gaussian_map = read_map_ply(folder.map_ply, device=device)
     with torch.no_grad():
-        activated = gaussian_map.activated()
-        gaussians = ActivatedGaussians(*(t.detach() for t in (activated.means, activated.quats, activated.scales,
-                                                              activated.opacities, activated.colors)),
-                                       max_sampling_rate=activated.max_sampling_rate)
+        gaussians = gaussian_map.activated().detached()
     return RunRenderContext(folder.root, config, info, intrinsics, gaussians, frames,
                             torch.from_numpy(np.array(est.T_wc)), Path(info["dataset"]["root"]))
 

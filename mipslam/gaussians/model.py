@@ -110,6 +110,14 @@ class ActivatedGaussians:
     def __len__(self) -> int:
         return int(self.means.shape[0])
 
+    def detached(self) -> "ActivatedGaussians":
+        """The same Gaussians cut from the autograd graph (a frozen map for tracking and evaluation); the
+        sampling rates come along, so the 3D filter stays the map's."""
+        rates = self.max_sampling_rate
+        return ActivatedGaussians(self.means.detach(), self.quats.detach(), self.scales.detach(),
+                                  self.opacities.detach(), self.colors.detach(),
+                                  max_sampling_rate=None if rates is None else rates.detach())
+
 
 @dataclass(frozen=True)
 class GaussianParameters:
