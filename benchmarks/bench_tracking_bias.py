@@ -1,0 +1,123 @@
+"""Benchmark: how far tracking settles from the truth against a map that mapping fitted to one true view.
+
+A diagnostic for the bias of the tracking optimum (docs/bench.md, "Session 11" and "Session 12"). Frame 0
+of a data_synth sequence is mapped at its ground-truth pose, as the pipeline maps its first frame (the
+preset's ``mapping.first_frame_iterations``). Then:
+
+* coverage: the map rendered at the true poses of frames 0 and 4. Quantiles of the rendered opacity ``A``
+  over pixels with valid depth, and two median depth biases over the pixels tracking uses (``A`` at least
+  ``tracking.opacity_threshold``): the raw depth ``D = sum T a z`` against the sensor depth ``d``
+  (``D / d - 1``, what mapping's depth term drives to 0), and the opacity-normalised depth
+  (``(D / A) / d - 1``, where the Gaussians actually sit). When ``A < 1`` the raw term pushes the
+  Gaussians outward by about ``1 / A - 1``.
+* tracking: frames 2, 4, ..., 10 tracked from their true poses with the preset's tracker, and the
+  estimate's error expressed in the true camera frame (OpenCV axes: x right, y down, z forward):
+  translation in mm, rotation vector in mrad, and the iterations used.
+
+An unbiased tracker against a faithful map would stay at the truth; the printed error is the bias a SLAM
+run starts from on every frame.
+
+Run: ``.venv/bin/python benchmarks/bench_tracking_bias.py SEQUENCE [--preset fast] [--set KEY=VALUE ...]``,
+SEQUENCE a data_synth folder, e.g. ``mipslam synth --out seq160 --format replica --trajectory loop
+--width 160 --height 120 --frames 240``.
+"""
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import torch  # noqa: E402
+
+from mipslam.config import load_config  # noqa: E402
+from mipslam.datasets import make_sequence  # noqa: E402
+from mipslam.geometry import se3_inverse  # noqa: E402
+from mipslam.mapping import MappingView  # noqa: E402
+from mipslam.pipeline import Stages  # noqa: E402
+from mipslam.rendering import render_view  # noqa: E402
+from mipslam.state import SLAMState  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+COVERAGE_FRAMES = (0, 4)
+TRACKED_FRAMES = (2, 4, 6, 8, 10)
+OPACITY_QUANTILES = (0.05, 0.25, 0.5, 0.75)
+
+
+def pose_error(T_wc_true: torch.Tensor, T_wc_est: torch.Tensor) -> tuple[list[float], list[float]]:
+    """Error of an estimate in the true camera frame.  T_wc [4, 4] -> (translation mm [3], rotation mrad [3]);
+    the rotation is the small-angle vector of ``T_true^-1 T_est`` (its skew part)."""
+    E = se3_inverse(T_wc_true.to(torch.float64)) @ T_wc_est.to(torch.float64)
+    rotation = torch.stack([E[2, 1] - E[1, 2], E[0, 2] - E[2, 0], E[1, 0] - E[0, 1]]) / 2
+    return (E[:3, 3] * 1000).tolist(), (rotation * 1000).tolist()
+
+
+@torch.no_grad()
+def coverage(gaussians, frame, T_wc: torch.Tensor, config) -> dict:
+    """Rendered opacity quantiles and median depth biases of the map seen from ``T_wc`` (see the module text)."""
+    out = render_view(gaussians, se3_inverse(T_wc), frame.intrinsics, config.render)
+    valid = frame.depth > 0
+    used = valid & (out.alpha >= config.tracking.opacity_threshold)
+    quantiles = torch.quantile(out.alpha[valid], torch.tensor(OPACITY_QUANTILES, dtype=out.alpha.dtype))
+    raw = out.depth[used] / frame.depth[used] - 1
+    normalised = out.depth[used] / out.alpha[used] / frame.depth[used] - 1
+    return {"opacity_quantiles": dict(zip(map(str, OPACITY_QUANTILES), quantiles.tolist())),
+            "fraction_used": float(used.float().mean()),
+            "raw_depth_bias": float(raw.median()), "normalised_depth_bias": float(normalised.median())}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("sequence", type=Path, help="a data_synth folder")
+    parser.add_argument("--preset", default="fast", choices=["fast", "balanced", "accurate"])
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--json", type=Path, help="also write the results here")
+    args = parser.parse_args(argv)
+
+    torch.set_num_threads(args.threads)
+    overrides = [f"dataset.path={args.sequence.resolve()}", f"dataset.max_frames={max(TRACKED_FRAMES) + 1}",
+                 *args.overrides]
+    config = load_config(REPO / "configs" / "synthetic.yaml", preset=args.preset, overrides=overrides)
+    sequence = make_sequence(config.dataset)
+    device = torch.device("cpu")
+    state = SLAMState.initial(config.mapping, config.run.seed, device)
+    stages = Stages.build(config, sequence, device)
+    T_wc_true = sequence.gt_T_wc
+
+    first = stages.frames[0]
+    view = MappingView(0, first.color, first.depth, T_wc_true[0], torch.zeros(2), first.intrinsics, False)
+    stages.mapper.map_keyframe(state.gaussian_map, state.optimizer, [view],
+                               iterations=config.mapping.first_frame_iterations, generator=state.generator,
+                               frame_index=0)
+    gaussians = state.gaussian_map.activated().detached()
+
+    results: dict = {"preset": args.preset, "overrides": args.overrides, "gaussians": len(state.gaussian_map),
+                     "coverage": {}, "tracking": []}
+    for k in COVERAGE_FRAMES:
+        c = coverage(gaussians, stages.frames[k], T_wc_true[k], config)
+        results["coverage"][k] = c
+        q = " / ".join(f"{v:.4f}" for v in c["opacity_quantiles"].values())
+        print(f"frame {k}: opacity q{'/'.join(str(int(100 * p)) for p in OPACITY_QUANTILES)} {q}, "
+              f"pixels used {c['fraction_used']:.3f}, median D/d - 1 {100 * c['raw_depth_bias']:+.2f} %, "
+              f"(D/A)/d - 1 {100 * c['normalised_depth_bias']:+.2f} %")
+    for k in TRACKED_FRAMES:
+        tracked = stages.tracker.track(gaussians, stages.frames[k], T_wc_true[k], None)
+        translation, rotation = pose_error(T_wc_true[k], tracked.T_wc)
+        moved = float((T_wc_true[k][:3, 3] - T_wc_true[0][:3, 3]).norm()) * 1000
+        results["tracking"].append({"frame": k, "moved_mm": moved, "translation_mm": translation,
+                                    "rotation_mrad": rotation, "iterations": tracked.iterations})
+        print(f"frame {k:2d} (moved {moved:3.0f} mm): error t mm {translation[0]:+6.2f} {translation[1]:+6.2f} "
+              f"{translation[2]:+6.2f}, rotation mrad {rotation[0]:+6.2f} {rotation[1]:+6.2f} {rotation[2]:+6.2f}, "
+              f"{tracked.iterations} iterations")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
