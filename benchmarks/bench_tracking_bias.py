@@ -14,6 +14,11 @@ preset's ``mapping.first_frame_iterations``). Then:
   estimate's error expressed in the true camera frame (OpenCV axes: x right, y down, z forward):
   translation in mm, rotation vector in mrad, and the iterations used.
 
+* pure motions (``--pure-motions``): frame 0's camera turned about its own y (yaw) or x (pitch) axis, or
+  moved along its x axis, rendered by data_synth's ray caster (8-bit colour, as the sequence stores it), and
+  tracked from the true pose. A pure rotation's image does not depend on depth, so its error separates the
+  map's lateral placement from its depth.
+
 An unbiased tracker against a faithful map would stay at the truth; the printed error is the bias a SLAM
 run starts from on every frame.
 
@@ -32,8 +37,10 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+import data_synth  # noqa: E402
 from mipslam.config import load_config  # noqa: E402
 from mipslam.datasets import make_sequence  # noqa: E402
 from mipslam.geometry import se3_inverse  # noqa: E402
@@ -41,11 +48,28 @@ from mipslam.mapping import MappingView  # noqa: E402
 from mipslam.pipeline import Stages  # noqa: E402
 from mipslam.rendering import render_view  # noqa: E402
 from mipslam.state import SLAMState  # noqa: E402
+from mipslam.types import Frame  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 COVERAGE_FRAMES = (0, 4)
 TRACKED_FRAMES = (2, 4, 6, 8, 10)
 OPACITY_QUANTILES = (0.05, 0.25, 0.5, 0.75)
+# (name, camera-frame axis 0/1/2 = x/y/z, rotation rad or None, translation m or None)
+PURE_MOTIONS = (("yaw -25 mrad", 1, -0.025, None), ("yaw -50 mrad", 1, -0.05, None), ("yaw -100 mrad", 1, -0.1, None),
+                ("yaw +50 mrad", 1, 0.05, None), ("pitch +50 mrad", 0, 0.05, None),
+                ("x -40 mm", 0, None, -0.04), ("x -100 mm", 0, None, -0.1))
+
+
+def camera_motion(axis: int, angle: float | None, offset: float | None) -> torch.Tensor:
+    """A rotation by ``angle`` rad about, or a translation by ``offset`` m along, camera axis ``axis``.  -> [4, 4]"""
+    M = torch.eye(4, dtype=torch.float64)
+    if angle is not None:
+        i, j = [(1, 2), (2, 0), (0, 1)][axis]
+        c, s = np.cos(angle), np.sin(angle)
+        M[i, i], M[j, j], M[i, j], M[j, i] = c, c, -s, s
+    if offset is not None:
+        M[axis, 3] = offset
+    return M
 
 
 def pose_error(T_wc_true: torch.Tensor, T_wc_est: torch.Tensor) -> tuple[list[float], list[float]]:
@@ -76,6 +100,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preset", default="fast", choices=["fast", "balanced", "accurate"])
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--pure-motions", action="store_true",
+                        help="also track pure rotations and translations of frame 0's camera (ray-cast by data_synth)")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args(argv)
 
@@ -114,6 +140,23 @@ def main(argv: list[str] | None = None) -> int:
         print(f"frame {k:2d} (moved {moved:3.0f} mm): error t mm {translation[0]:+6.2f} {translation[1]:+6.2f} "
               f"{translation[2]:+6.2f}, rotation mrad {rotation[0]:+6.2f} {rotation[1]:+6.2f} {rotation[2]:+6.2f}, "
               f"{tracked.iterations} iterations")
+    if args.pure_motions:
+        scene = data_synth.load_scene(args.sequence)
+        supersample = int(data_synth.read_synth_json(args.sequence)["render"]["supersample"])  # as the frames
+        results["pure_motions"] = []
+        for name, axis, angle, offset in PURE_MOTIONS:
+            T_wc = T_wc_true[0].to(torch.float64) @ camera_motion(axis, angle, offset)
+            color, depth = data_synth.render_view(scene, T_wc, first.intrinsics, supersample=supersample)
+            color = np.round(color * 255.0) / 255.0  # stored as 8-bit, like the sequence's frames
+            frame = Frame(first.index, first.timestamp, torch.from_numpy(color).float(), torch.from_numpy(depth).float(),
+                          first.intrinsics, T_wc)
+            tracked = stages.tracker.track(gaussians, frame, T_wc, None)
+            translation, rotation = pose_error(T_wc, tracked.T_wc)
+            results["pure_motions"].append({"motion": name, "translation_mm": translation, "rotation_mrad": rotation,
+                                            "iterations": tracked.iterations})
+            print(f"{name:15s}: error t mm {translation[0]:+6.2f} {translation[1]:+6.2f} {translation[2]:+6.2f}, "
+                  f"rotation mrad {rotation[0]:+6.2f} {rotation[1]:+6.2f} {rotation[2]:+6.2f}, "
+                  f"{tracked.iterations} iterations")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
     return 0

@@ -29,7 +29,7 @@ def test_bench_tracking_bias_reports_finite_biases_and_errors(tmp_path):
     out = tmp_path / "bias.json"
     bench = _load_benchmark()
     assert bench.main([str(sequence), "--set", "mapping.first_frame_iterations=20",
-                       "--set", "tracking.iterations=6", "--json", str(out)]) == 0
+                       "--set", "tracking.iterations=6", "--pure-motions", "--json", str(out)]) == 0
     results = json.loads(out.read_text())
     assert results["gaussians"] > 0
     first = results["coverage"]["0"]
@@ -42,3 +42,6 @@ def test_bench_tracking_bias_reports_finite_biases_and_errors(tmp_path):
         values = row["translation_mm"] + row["rotation_mrad"]
         assert all(math.isfinite(v) for v in values) and 1 <= row["iterations"] <= 6
         assert max(abs(v) for v in row["translation_mm"]) < 20.0  # started at the truth: 6 Rprop steps move it a few mm
+    assert [row["motion"] for row in results["pure_motions"]] == [m[0] for m in bench.PURE_MOTIONS]
+    for row in results["pure_motions"]:
+        assert all(math.isfinite(v) for v in row["translation_mm"] + row["rotation_mrad"])
