@@ -218,6 +218,8 @@ class MappingConfig:
     # The fast and balanced presets use 2 (docs/robustness.md); at 40x30 a radius of 2 std-devs (4 px)
     # also blocks real surfaces and costs tracking accuracy, so the base value is 1.
     add_min_distance_ratio: float = 1.0
+    # A new Gaussian's opacity. With short mapping the map's rendered opacity stays below 1 (about 0.985 at 0.5), and
+    # the raw depth term then places the Gaussians about 1 / A - 1 too far; `fast` uses 0.98 (docs/bench.md "Session 12").
     initial_opacity: float = 0.5
     prune_opacity: float = 0.005
     prune_max_sigma_px: float = 50.0  # std-dev larger than this many pixels (seen from the keyframe) is absurd
