@@ -41,8 +41,9 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 import data_synth  # noqa: E402
-from mipslam.config import load_config  # noqa: E402
+from mipslam.config import Config, load_config  # noqa: E402
 from mipslam.datasets import make_sequence  # noqa: E402
+from mipslam.gaussians import ActivatedGaussians  # noqa: E402
 from mipslam.geometry import se3_inverse  # noqa: E402
 from mipslam.mapping import MappingView  # noqa: E402
 from mipslam.pipeline import Stages  # noqa: E402
@@ -81,8 +82,12 @@ def pose_error(T_wc_true: torch.Tensor, T_wc_est: torch.Tensor) -> tuple[list[fl
 
 
 @torch.no_grad()
-def coverage(gaussians, frame, T_wc: torch.Tensor, config) -> dict:
-    """Rendered opacity quantiles and median depth biases of the map seen from ``T_wc`` (see the module text)."""
+def coverage(gaussians: ActivatedGaussians, frame: Frame, T_wc: torch.Tensor, config: Config) -> dict:
+    """Rendered opacity quantiles and median depth biases of the map seen from ``T_wc`` (see the module text).
+
+    T_wc [4, 4] float64 camera-to-world; ``frame.depth`` [H, W] metres (0 = no measurement). The biases are
+    fractions (0.01 = 1 %), medians over the pixels tracking uses; ``fraction_used`` is their share of all pixels.
+    """
     out = render_view(gaussians, se3_inverse(T_wc), frame.intrinsics, config.render)
     valid = frame.depth > 0
     used = valid & (out.alpha >= config.tracking.opacity_threshold)
