@@ -132,7 +132,4 @@ def frustum_subset(gaussians: ActivatedGaussians, T_cw: torch.Tensor, intrinsics
                    config: RenderConfig) -> ActivatedGaussians:
     """The detached rows of a frozen map that :func:`frustum_indices` keeps (tracking)."""
     index = frustum_indices(gaussians.means, gaussians.scales, T_cw, intrinsics, config)
-    rates = gaussians.max_sampling_rate
-    return ActivatedGaussians(*(t.detach().index_select(0, index) for t in (
-        gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.colors)),
-        max_sampling_rate=None if rates is None else rates.index_select(0, index))
+    return gaussians.detached().rows(index)

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, fields
-from typing import TYPE_CHECKING, Mapping
+from typing import TYPE_CHECKING, Callable, Mapping
 
 import torch
 
@@ -110,13 +110,19 @@ class ActivatedGaussians:
     def __len__(self) -> int:
         return int(self.means.shape[0])
 
+    def _map(self, fn: Callable[[torch.Tensor], torch.Tensor]) -> "ActivatedGaussians":
+        """``fn`` applied to every per-Gaussian tensor; an absent optional field (None) stays absent."""
+        return ActivatedGaussians(**{f.name: None if (value := getattr(self, f.name)) is None else fn(value)
+                                     for f in fields(self)})
+
     def detached(self) -> "ActivatedGaussians":
         """The same Gaussians cut from the autograd graph (a frozen map for tracking and evaluation); the
         sampling rates come along, so the 3D filter stays the map's."""
-        rates = self.max_sampling_rate
-        return ActivatedGaussians(self.means.detach(), self.quats.detach(), self.scales.detach(),
-                                  self.opacities.detach(), self.colors.detach(),
-                                  max_sampling_rate=None if rates is None else rates.detach())
+        return self._map(torch.Tensor.detach)
+
+    def rows(self, index: torch.Tensor) -> "ActivatedGaussians":
+        """The Gaussians at ``index`` [M] int64, every field (the sampling rates included) alike."""
+        return self._map(lambda value: value.index_select(0, index))
 
 
 @dataclass(frozen=True)
