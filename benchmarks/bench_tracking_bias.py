@@ -44,7 +44,7 @@ import data_synth  # noqa: E402
 from mipslam.config import Config, load_config  # noqa: E402
 from mipslam.datasets import make_sequence  # noqa: E402
 from mipslam.gaussians import ActivatedGaussians  # noqa: E402
-from mipslam.geometry import se3_inverse  # noqa: E402
+from mipslam.geometry import se3_exp, se3_inverse, so3_log  # noqa: E402
 from mipslam.mapping import MappingView  # noqa: E402
 from mipslam.pipeline import Stages  # noqa: E402
 from mipslam.rendering import render_view  # noqa: E402
@@ -63,22 +63,19 @@ PURE_MOTIONS = (("yaw -25 mrad", 1, -0.025, None), ("yaw -50 mrad", 1, -0.05, No
 
 def camera_motion(axis: int, angle: float | None, offset: float | None) -> torch.Tensor:
     """A rotation by ``angle`` rad about, or a translation by ``offset`` m along, camera axis ``axis``.  -> [4, 4]"""
-    M = torch.eye(4, dtype=torch.float64)
-    if angle is not None:
-        i, j = [(1, 2), (2, 0), (0, 1)][axis]
-        c, s = np.cos(angle), np.sin(angle)
-        M[i, i], M[j, j], M[i, j], M[j, i] = c, c, -s, s
+    xi = torch.zeros(6, dtype=torch.float64)  # [rho, phi]
     if offset is not None:
-        M[axis, 3] = offset
-    return M
+        xi[axis] = offset
+    if angle is not None:
+        xi[3 + axis] = angle
+    return se3_exp(xi)
 
 
 def pose_error(T_wc_true: torch.Tensor, T_wc_est: torch.Tensor) -> tuple[list[float], list[float]]:
-    """Error of an estimate in the true camera frame.  T_wc [4, 4] -> (translation mm [3], rotation mrad [3]);
-    the rotation is the small-angle vector of ``T_true^-1 T_est`` (its skew part)."""
+    """Error of an estimate in the true camera frame.  T_wc [4, 4] -> (translation mm [3], rotation mrad [3]):
+    the translation and rotation vector of ``T_true^-1 T_est``."""
     E = se3_inverse(T_wc_true.to(torch.float64)) @ T_wc_est.to(torch.float64)
-    rotation = torch.stack([E[2, 1] - E[1, 2], E[0, 2] - E[2, 0], E[1, 0] - E[0, 1]]) / 2
-    return (E[:3, 3] * 1000).tolist(), (rotation * 1000).tolist()
+    return (E[:3, 3] * 1000).tolist(), (so3_log(E[:3, :3]) * 1000).tolist()
 
 
 @torch.no_grad()
