@@ -259,6 +259,31 @@ def test_rprop_tracking_stops_early_at_the_pose_adam_reaches_with_every_iteratio
     assert (ends["rprop"][1] - ends["adam"][1]).norm() < 2e-3, ends
 
 
+def test_mapping_moves_a_perturbed_keyframe_pose_towards_the_truth(one_frame_map):
+    # Mapping refines the poses of the keyframes it trains on (mapping.lr_poses), with the first keyframe
+    # fixed as the anchor; the fast preset relies on it over a full lap (docs/bench.md "Session 13").
+    seq = one_frame_map[0]
+    config, sequence, gmap, _, _ = _map_of_first_frame(seq, 60)
+    mapping = replace(config.mapping, lr_poses=load_config(REPO / "configs" / "synthetic.yaml",
+                                                           preset="fast").mapping.lr_poses)
+    optimizer = GaussianOptimizer.from_config(gmap, mapping)
+    first, second = sequence[0], sequence[1]
+    T_wc_true = sequence.gt_T_wc[1]
+    perturbation = se3_exp(torch.tensor([0.004, -0.003, 0.002, 0.003, -0.004, 0.002], dtype=torch.float64))
+    moved = MappingView(1, second.color, second.depth, T_wc_true @ perturbation, torch.zeros(2),
+                        second.intrinsics, optimize_pose=True)
+    anchor = MappingView(0, first.color, first.depth, sequence.gt_T_wc[0], torch.zeros(2), first.intrinsics,
+                         optimize_pose=False)
+    # 40 steps on the moved view (every other step): the roll about the optical axis settles last.
+    _, _, refined = Mapper(mapping, config.render).optimize(gmap, optimizer, [moved, anchor], 80,
+                                                            torch.Generator().manual_seed(0))
+    assert [keyframe_id for keyframe_id, _ in refined] == [1]  # the anchor's pose is never touched
+    error_before = se3_log(perturbation)
+    error_after = se3_log(se3_inverse(T_wc_true) @ refined[0][1])
+    assert error_after[:3].norm() < 0.5 * error_before[:3].norm(), (error_before, error_after)
+    assert error_after[3:].norm() < 0.5 * error_before[3:].norm(), (error_before, error_after)
+
+
 def test_tracking_against_the_frustum_subset_equals_tracking_against_the_whole_map(one_frame_map):
     # A far-away copy of the map (behind the camera and off to the side) cannot be drawn: tracking leaves it
     # out of the projection and must end where tracking the original map ends, with the same loss.
