@@ -2,24 +2,11 @@
 reports coverage, depth biases and tracking errors that are all finite and plausible."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import sys
-from pathlib import Path
 
 import data_synth
-
-REPO = Path(__file__).resolve().parent.parent
-
-
-def _load_benchmark():
-    path = REPO / "benchmarks" / "bench_tracking_bias.py"
-    spec = importlib.util.spec_from_file_location("bench_tracking_bias", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+from benchmark_loader import load_benchmark
 
 
 def test_bench_tracking_bias_reports_finite_biases_and_errors(tmp_path):
@@ -27,7 +14,7 @@ def test_bench_tracking_bias_reports_finite_biases_and_errors(tmp_path):
     data_synth.generate(sequence, layout="replica", trajectory="loop", width=40, height=30, frames=11, seed=0,
                         supersample=2)
     out = tmp_path / "bias.json"
-    bench = _load_benchmark()
+    bench = load_benchmark("bench_tracking_bias")
     assert bench.main([str(sequence), "--set", "mapping.first_frame_iterations=20",
                        "--set", "tracking.iterations=6", "--pure-motions", "--json", str(out)]) == 0
     results = json.loads(out.read_text())

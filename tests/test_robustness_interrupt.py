@@ -4,26 +4,12 @@ mapping too. The trials are those of benchmarks/robustness_kill_resume.py (which
 with a fixed seed; the reference and the resumes run in this process to save interpreter start-ups."""
 from __future__ import annotations
 
-import importlib.util
 import random
-import sys
-from pathlib import Path
 
 import pytest
+from benchmark_loader import load_benchmark
 
-REPO = Path(__file__).resolve().parent.parent
-
-
-def _load_benchmark():
-    path = REPO / "benchmarks" / "robustness_kill_resume.py"
-    spec = importlib.util.spec_from_file_location("robustness_kill_resume", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
-
-
-kill_resume = _load_benchmark()
+kill_resume = load_benchmark("robustness_kill_resume")
 
 
 @pytest.fixture(scope="module")
