@@ -198,9 +198,7 @@ def one_frame_map(tmp_path_factory):
     seq = tmp_path_factory.mktemp("track") / "seq"
     data_synth.generate(seq, layout="replica", trajectory="loop", width=64, height=48, frames=2, seed=0, supersample=2)
     config, sequence, gmap, _, _ = _map_of_first_frame(seq, 60)
-    g = gmap.activated()
-    detached = type(g)(*(t.detach() for t in (g.means, g.quats, g.scales, g.opacities, g.colors)))
-    return seq, config, sequence, detached
+    return seq, config, sequence, gmap.activated().detached()
 
 
 def _preset_tracking_overrides(preset: str) -> list[str]:
