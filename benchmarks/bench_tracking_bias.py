@@ -46,7 +46,7 @@ from mipslam.datasets import make_sequence  # noqa: E402
 from mipslam.gaussians import ActivatedGaussians  # noqa: E402
 from mipslam.geometry import se3_exp, se3_inverse, so3_log  # noqa: E402
 from mipslam.mapping import MappingView  # noqa: E402
-from mipslam.pipeline import Stages  # noqa: E402
+from mipslam.pipeline import Stages, resolve_device  # noqa: E402
 from mipslam.rendering import render_view  # noqa: E402
 from mipslam.state import SLAMState  # noqa: E402
 from mipslam.types import Frame  # noqa: E402
@@ -88,7 +88,8 @@ def coverage(gaussians: ActivatedGaussians, frame: Frame, T_wc: torch.Tensor, co
     out = render_view(gaussians, se3_inverse(T_wc), frame.intrinsics, config.render)
     valid = frame.depth > 0
     used = valid & (out.alpha >= config.tracking.opacity_threshold)
-    quantiles = torch.quantile(out.alpha[valid], torch.tensor(OPACITY_QUANTILES, dtype=out.alpha.dtype))
+    quantiles = torch.quantile(out.alpha[valid], torch.tensor(OPACITY_QUANTILES, dtype=out.alpha.dtype,
+                                                              device=out.alpha.device))
     raw = out.depth[used] / frame.depth[used] - 1
     normalised = out.depth[used] / out.alpha[used] / frame.depth[used] - 1
     return {"opacity_quantiles": dict(zip(map(str, OPACITY_QUANTILES), quantiles.tolist())),
@@ -112,13 +113,14 @@ def main(argv: list[str] | None = None) -> int:
                  *args.overrides]
     config = load_config(REPO / "configs" / "synthetic.yaml", preset=args.preset, overrides=overrides)
     sequence = make_sequence(config.dataset)
-    device = torch.device("cpu")
+    device = resolve_device(config.run.device)
     state = SLAMState.initial(config.mapping, config.run.seed, device)
     stages = Stages.build(config, sequence, device)
     T_wc_true = sequence.gt_T_wc
 
     first = stages.frames[0]
-    view = MappingView(0, first.color, first.depth, T_wc_true[0], torch.zeros(2), first.intrinsics, False)
+    view = MappingView(0, first.color, first.depth, T_wc_true[0], torch.zeros(2, device=device), first.intrinsics,
+                       False)
     stages.mapper.map_keyframe(state.gaussian_map, state.optimizer, [view],
                                iterations=config.mapping.first_frame_iterations, generator=state.generator,
                                frame_index=0)
@@ -150,8 +152,8 @@ def main(argv: list[str] | None = None) -> int:
             T_wc = T_wc_true[0].to(torch.float64) @ camera_motion(axis, angle, offset)
             color, depth = data_synth.render_view(scene, T_wc, first.intrinsics, supersample=supersample)
             color = np.round(color * 255.0) / 255.0  # stored as 8-bit, like the sequence's frames
-            frame = Frame(first.index, first.timestamp, torch.from_numpy(color).float(), torch.from_numpy(depth).float(),
-                          first.intrinsics, T_wc)
+            frame = Frame(first.index, first.timestamp, torch.from_numpy(color).float().to(device),
+                          torch.from_numpy(depth).float().to(device), first.intrinsics, T_wc)
             tracked = stages.tracker.track(gaussians, frame, T_wc, None)
             translation, rotation = pose_error(T_wc, tracked.T_wc)
             results["pure_motions"].append({"motion": name, "translation_mm": translation, "rotation_mrad": rotation,
