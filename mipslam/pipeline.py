@@ -147,7 +147,8 @@ def process_frame(stages: Stages, state: SLAMState, index: int, timestamp: float
     is_keyframe = bool(decision is not None and decision.is_keyframe)
     record = FrameRecord(index, timestamp, tracked.T_wc, tracked.exposure, tracked.status, tracked.loss,
                          tracked.iterations, len(state.keyframe_frames) if is_keyframe else -1,
-                         state.last_keyframe_id() if state.last_keyframe_id() is not None else -1)
+                         state.last_keyframe_id() if state.last_keyframe_id() is not None else -1,
+                         T_wc_tracked=tracked.T_wc)
     state.frames.append(record)
     with _timed(state, "mapping"):
         if is_keyframe:
@@ -162,10 +163,11 @@ def process_frame(stages: Stages, state: SLAMState, index: int, timestamp: float
 
 def track(stages: Stages, state: SLAMState, frame: Frame, T_wc_first: torch.Tensor) -> TrackingResult:
     """Tracking against the frozen map; the first frame (or any frame while the map is empty) defines the pose."""
-    poses = [f.T_wc for f in state.frames[-2:]]
-    if not poses:
+    previous = state.frames[-2:]
+    if not previous:
         return initial_result(T_wc_first)
-    prediction = constant_velocity_prediction(poses[-1], poses[-2] if len(poses) == 2 else None)
+    prediction = constant_velocity_prediction(previous[-1].T_wc, previous[-1].T_wc_tracked,
+                                              previous[-2].T_wc_tracked if len(previous) == 2 else None)
     if len(state.gaussian_map) == 0:
         return initial_result(prediction)
     detached = state.gaussian_map.activated().detached()

@@ -30,7 +30,9 @@ class FrameRecord:
 
     T_wc [4, 4] float64 camera-to-world estimate; exposure [2] (log_gain, bias); status is the
     tracking status ("initial", "ok" or a failure reason); keyframe_id is -1 for non-keyframes;
-    reference_keyframe is the keyframe the frame was tracked after.
+    reference_keyframe is the keyframe the frame was tracked after. T_wc_tracked [4, 4] float64 is the
+    pose as tracking left it, before mapping's refinement and loop corrections moved ``T_wc``: the
+    motion model takes the frame-to-frame motion from it (:func:`~mipslam.tracking.constant_velocity_prediction`).
     """
 
     index: int
@@ -42,6 +44,7 @@ class FrameRecord:
     tracking_iterations: int
     keyframe_id: int
     reference_keyframe: int
+    T_wc_tracked: torch.Tensor
 
     @property
     def tracked(self) -> bool:
@@ -141,6 +144,8 @@ class SLAMState:
             "frames.index": torch.tensor([f.index for f in frames], dtype=torch.int64),
             "frames.timestamp": torch.tensor([f.timestamp for f in frames], dtype=torch.float64),
             "frames.T_wc": self.poses(),
+            "frames.T_wc_tracked": (torch.stack([f.T_wc_tracked.to(torch.float64) for f in frames]) if frames
+                                    else torch.zeros(0, 4, 4, dtype=torch.float64)),
             "frames.exposure": torch.stack([f.exposure.float().cpu() for f in frames]) if frames else torch.zeros(0, 2),
             "frames.tracking_loss": torch.tensor([f.tracking_loss for f in frames], dtype=torch.float64),
             "frames.tracking_iterations": torch.tensor([f.tracking_iterations for f in frames], dtype=torch.int64),
@@ -180,6 +185,9 @@ class SLAMState:
         generator = torch.Generator(device="cpu")
         restore_rng_state(tensors, metadata["rng"], {"run": generator})
         statuses = metadata["statuses"]
+        # checkpoints written before the tracked poses were kept: the current poses stand in for them (the motion
+        # model then differences them, as it did when those checkpoints were written)
+        tracked = tensors.get("frames.T_wc_tracked", tensors["frames.T_wc"])
         frames = [
             FrameRecord(
                 index=int(tensors["frames.index"][i]),
@@ -191,6 +199,7 @@ class SLAMState:
                 tracking_iterations=int(tensors["frames.tracking_iterations"][i]),
                 keyframe_id=int(tensors["frames.keyframe_id"][i]),
                 reference_keyframe=int(tensors["frames.reference_keyframe"][i]),
+                T_wc_tracked=tracked[i].clone(),
             )
             for i in range(len(statuses))
         ]

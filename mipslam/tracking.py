@@ -54,14 +54,19 @@ class TrackingResult:
     status: str
 
 
-def constant_velocity_prediction(T_wc_prev: torch.Tensor, T_wc_prev2: torch.Tensor | None) -> torch.Tensor:
-    """Pose predicted by repeating the last relative motion.  [4, 4] x [4, 4] -> [4, 4] float64
+def constant_velocity_prediction(T_wc_prev: torch.Tensor, T_wc_prev_tracked: torch.Tensor,
+                                 T_wc_prev2_tracked: torch.Tensor | None) -> torch.Tensor:
+    """Pose predicted by repeating the last tracked motion.  [4, 4] x 3 -> [4, 4] float64
 
-    ``T_wc_pred = T_prev (T_prev2^-1 T_prev)``; with one previous pose, the pose itself.
+    ``T_wc_pred = T_prev (T2^-1 T1)``: T1 and T2 are the previous frame's pose and the one's before it as
+    tracking estimated them, ``T_prev`` the previous pose as it stands now. Mapping may have refined it since
+    (a keyframe's pose) or a loop correction moved it: the motion from the tracked poses applies such a change
+    once, where the difference of the current poses would repeat it as motion. With no frame before the
+    previous, the previous pose itself.
     """
-    if T_wc_prev2 is None:
+    if T_wc_prev2_tracked is None:
         return T_wc_prev.clone()
-    return T_wc_prev @ (se3_inverse(T_wc_prev2) @ T_wc_prev)
+    return T_wc_prev @ (se3_inverse(T_wc_prev2_tracked) @ T_wc_prev_tracked)
 
 
 @dataclass(frozen=True)

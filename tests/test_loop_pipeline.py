@@ -178,9 +178,9 @@ def test_correction_keeps_frames_relative_to_their_reference_keyframe():
         return se3_exp(torch.tensor(xi, dtype=F64))
 
     T = [torch.eye(4, dtype=F64), pose(0.5, 0, 0, 0, 0.1, 0), pose(0.7, 0.1, 0, 0, 0.15, 0)]
-    frames = [FrameRecord(0, 0.0, T[0], torch.zeros(2), "initial", 0.0, 0, 0, -1),
-              FrameRecord(1, 1.0, T[1], torch.zeros(2), "ok", 0.1, 5, 1, 0),
-              FrameRecord(2, 2.0, T[2], torch.zeros(2), "ok", 0.1, 5, -1, 1)]
+    frames = [FrameRecord(0, 0.0, T[0], torch.zeros(2), "initial", 0.0, 0, 0, -1, T[0]),
+              FrameRecord(1, 1.0, T[1], torch.zeros(2), "ok", 0.1, 5, 1, 0, T[1]),
+              FrameRecord(2, 2.0, T[2], torch.zeros(2), "ok", 0.1, 5, -1, 1, T[2])]
     gmap = GaussianMap.empty(dtype=torch.float32)
     points = torch.tensor([[0.0, 0.0, 2.0], [0.5, 0.0, 2.0]])
     gmap.add(GaussianParameters.from_activated(points, torch.tensor([[1.0, 0, 0, 0]] * 2), torch.full((2, 3), 0.05),

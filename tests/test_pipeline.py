@@ -12,6 +12,7 @@ import pytest
 import torch
 
 import data_synth
+from mipslam.checkpoint import load_latest_checkpoint
 from mipslam.cli import main
 from mipslam.config import RenderConfig, load_config
 from mipslam.datasets import make_sequence
@@ -22,7 +23,8 @@ from mipslam.io.tum import read_tum_trajectory
 from mipslam.mapping import Mapper, MappingView
 from mipslam.pipeline import run_slam
 from mipslam.rendering import frustum_subset, render_view
-from mipslam.tracking import Tracker
+from mipslam.state import SLAMState
+from mipslam.tracking import Tracker, constant_velocity_prediction
 from mipslam.types import Intrinsics
 
 REPO = Path(__file__).resolve().parent.parent
@@ -375,3 +377,35 @@ def test_detached_gaussians_keep_their_rates_and_leave_the_graph_and_rows_select
     assert len(second) == 1 and second.max_sampling_rate.tolist() == [0.0]
     assert torch.equal(second.opacities, frozen.opacities[1:]) and torch.equal(second.colors, frozen.colors[1:])
     assert ActivatedGaussians(*(t.detach() for t in (leaf, leaf, leaf, leaf[:, 0], leaf))).detached().max_sampling_rate is None
+
+
+def test_the_motion_model_moves_with_a_refined_previous_pose_once():
+    # Tracked: frame 1 is 2 cm right of frame 0. Mapping then refines frame 1 by 5 mm forward. The prediction for
+    # frame 2 repeats the tracked motion from the refined pose; differencing the current poses would add the 5 mm
+    # twice (once in the anchor, once in the motion).
+    T0 = torch.eye(4, dtype=torch.float64)
+    T1_tracked = se3_exp(torch.tensor([0.02, 0.0, 0.0, 0.0, 0.0, 0.01], dtype=torch.float64))
+    refinement = se3_exp(torch.tensor([0.0, 0.0, 0.005, 0.0, 0.0, 0.0], dtype=torch.float64))
+    T1 = T1_tracked @ refinement
+    predicted = constant_velocity_prediction(T1, T1_tracked, T0)
+    torch.testing.assert_close(predicted, T1 @ T1_tracked)
+    torch.testing.assert_close(se3_inverse(T1) @ predicted, se3_inverse(T0) @ T1_tracked)  # the tracked motion
+    # unrefined, it is the plain constant-velocity model; with one frame, the previous pose
+    torch.testing.assert_close(constant_velocity_prediction(T1_tracked, T1_tracked, T0), T1_tracked @ T1_tracked)
+    torch.testing.assert_close(constant_velocity_prediction(T1, T1_tracked, None), T1)
+
+
+def test_tracked_poses_survive_a_checkpoint_and_old_checkpoints_fall_back_to_the_poses(tiny_sequence, tmp_path):
+    # every frame a keyframe and a large pose rate: mapping visibly moves the keyframes away from their tracked poses
+    config = tiny_config(tiny_sequence, "mapping.lr_poses=1e-3", "keyframes.covisibility_threshold=1.0")
+    run_slam(config, tmp_path / "run", evaluate=False)
+    checkpoint = load_latest_checkpoint(tmp_path / "run" / "checkpoints")
+    state = SLAMState.from_checkpoint(checkpoint.tensors, checkpoint.metadata, config.mapping, torch.device("cpu"))
+    moved = [float((f.T_wc - f.T_wc_tracked).abs().max()) for f in state.frames if f.keyframe_id > 0]
+    assert moved and max(moved) > 1e-4, moved
+    torch.testing.assert_close(torch.stack([f.T_wc_tracked for f in state.frames]),
+                               checkpoint.tensors["frames.T_wc_tracked"], rtol=0, atol=0)
+    old = {k: v for k, v in checkpoint.tensors.items() if k != "frames.T_wc_tracked"}
+    state = SLAMState.from_checkpoint(old, checkpoint.metadata, config.mapping, torch.device("cpu"))
+    for frame in state.frames:
+        torch.testing.assert_close(frame.T_wc_tracked, frame.T_wc, rtol=0, atol=0)
