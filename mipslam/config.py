@@ -200,7 +200,7 @@ class MappingConfig:
     lr_colors: float = 5e-3
     # Adam rate of the joint refinement of the poses of the keyframes mapping trains on (m, rad; keyframe 0
     # stays fixed). Adam moves a pose by about this per step, so the rate times the steps bounds how far
-    # mapping can correct tracking (docs/bench.md "Session 13": 3e-4 in fast, tried and not kept).
+    # mapping can correct tracking (docs/bench.md "Session 13" and "Session 14": fast takes 3e-4).
     lr_poses: float = 1e-4
     alpha_color: float = 0.5
     isotropy_weight: float = 10.0
