@@ -35,7 +35,7 @@ def test_a_changing_share_of_keyframes_does_not_fail_the_time_check():
     n = 400
     flags = [(i % 5 == 0) if i < n // 2 else (i % 5 != 0) for i in range(n)]
     probe = _probe(flags, [250.0 if flag else 100.0 for flag in flags])
-    name, passed, detail = long_run.time_growth_check(probe, covered=1)
+    _, passed, detail = long_run.time_growth_check(probe, covered=1)
     assert passed, detail
     assert "keyframes median 250 -> 250" in detail and "other frames median 100 -> 100" in detail
 
@@ -45,7 +45,7 @@ def test_dearer_keyframes_once_the_room_is_covered_do_not_fail_the_time_check():
     n = 400
     flags = [i % 2 == 0 for i in range(n)]
     times = [(300.0 if i < n // 2 else 600.0) if flag else 150.0 for i, flag in enumerate(flags)]
-    name, passed, detail = long_run.time_growth_check(_probe(flags, times), covered=n // 2)
+    _, passed, detail = long_run.time_growth_check(_probe(flags, times), covered=n // 2)
     assert passed, detail
     assert "keyframes median 600 -> 600" in detail and "before the room is covered: keyframes median 300" in detail
 
@@ -55,7 +55,7 @@ def test_growing_keyframe_cost_fails_the_time_check():
     flags = [i % 2 == 0 for i in range(n)]
     # keyframes grow from 200 to 400 ms over the revisits (ratio ~1.8 between their quarters), other frames stay flat
     times = [200.0 + 200.0 * i / n if flag else 100.0 for i, flag in enumerate(flags)]
-    name, passed, detail = long_run.time_growth_check(_probe(flags, times), covered=1)
+    _, passed, detail = long_run.time_growth_check(_probe(flags, times), covered=1)
     assert not passed
     assert "other frames median 100 -> 100" in detail
 
