@@ -84,9 +84,12 @@ class SLAMState:
     def last_keyframe_id(self) -> int | None:
         return len(self.keyframe_frames) - 1 if self.keyframe_frames else None
 
-    def poses(self) -> torch.Tensor:
-        """All estimated poses so far.  -> [F, 4, 4] float64"""
-        return torch.stack([f.T_wc for f in self.frames]) if self.frames else torch.zeros(0, 4, 4, dtype=torch.float64)
+    def poses(self, *, as_tracked: bool = False) -> torch.Tensor:
+        """All estimated poses so far (``as_tracked``: as tracking left them, ``FrameRecord.T_wc_tracked``).
+        -> [F, 4, 4] float64"""
+        if not self.frames:
+            return torch.zeros(0, 4, 4, dtype=torch.float64)
+        return torch.stack([(f.T_wc_tracked if as_tracked else f.T_wc).to(torch.float64) for f in self.frames])
 
     # ------------------------------------------------------------------ updates
 
@@ -144,8 +147,7 @@ class SLAMState:
             "frames.index": torch.tensor([f.index for f in frames], dtype=torch.int64),
             "frames.timestamp": torch.tensor([f.timestamp for f in frames], dtype=torch.float64),
             "frames.T_wc": self.poses(),
-            "frames.T_wc_tracked": (torch.stack([f.T_wc_tracked.to(torch.float64) for f in frames]) if frames
-                                    else torch.zeros(0, 4, 4, dtype=torch.float64)),
+            "frames.T_wc_tracked": self.poses(as_tracked=True),
             "frames.exposure": torch.stack([f.exposure.float().cpu() for f in frames]) if frames else torch.zeros(0, 2),
             "frames.tracking_loss": torch.tensor([f.tracking_loss for f in frames], dtype=torch.float64),
             "frames.tracking_iterations": torch.tensor([f.tracking_iterations for f in frames], dtype=torch.int64),
