@@ -78,6 +78,9 @@ class DatasetConfig:
     width: int | None = None
     height: int | None = None
     depth_scale: float | None = None  # stored value / depth_scale = metres (Replica 6553.5, TUM 5000)
+    # Lens distortion of the images on disk, OpenCV order (k1, k2, p1, p2[, k3]); frames (colour bilinear,
+    # depth nearest) are undistorted at the dataset boundary with the same fx..cy. Unset or [] = none.
+    distortion: tuple[float, ...] | None = None
     association_tolerance_s: float = 0.02  # TUM rgb-depth-groundtruth association
 
     def __post_init__(self):
@@ -92,6 +95,10 @@ class DatasetConfig:
             value = getattr(self, key)
             _check(value is None or value >= 1, f"dataset.{key}", "must be >= 1")
         _check(self.association_tolerance_s > 0, "dataset.association_tolerance_s", "must be positive")
+        _check(self.distortion is None or len(self.distortion) in (0, 4, 5), "dataset.distortion",
+               "must be [] or OpenCV's [k1, k2, p1, p2] or [k1, k2, p1, p2, k3]")
+        _check(self.distortion is None or all(math.isfinite(v) for v in self.distortion), "dataset.distortion",
+               "must be finite numbers")
 
 
 @dataclass(frozen=True)

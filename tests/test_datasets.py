@@ -431,3 +431,47 @@ def test_real_tum_downscaled(tum_fr1_xyz_path):
     assert frame.depth.shape == (120, 160) and frame.color.shape == (120, 160, 3)
     valid = frame.depth[frame.depth > 0]
     assert valid.numel() > 0.5 * frame.depth.numel() and 0.4 < float(valid.median()) < 4.0
+
+
+# ----------------------------------------------------------------------------- lens distortion
+
+def test_lens_undistortion_moves_a_distorted_point_to_its_pinhole_position():
+    from mipslam.datasets.images import LensUndistortion
+
+    w, h, camera, coefficients = 64, 48, (50.0, 52.0, 31.5, 23.5), (0.4, 0.0, 0.001, -0.002, 0.0)
+    K = np.array([[50.0, 0, 31.5], [0, 52.0, 23.5], [0, 0, 1]])
+    ray = np.array([[[0.42, 0.3, 1.0]]])  # a camera-frame point away from the centre
+    pinhole = ray[0, 0, :2] / ray[0, 0, 2] * [50.0, 52.0] + [31.5, 23.5]
+    distorted, _ = cv2.projectPoints(ray, np.zeros(3), np.zeros(3), K, np.array(coefficients))
+    du, dv = distorted.reshape(2)
+    color = np.zeros((h, w, 3), np.float32)
+    depth = np.zeros((h, w), np.float32)
+    color[int(round(dv)) - 1:int(round(dv)) + 2, int(round(du)) - 1:int(round(du)) + 2] = 1.0  # a 3x3 bright spot
+    depth[int(round(dv)) - 1:int(round(dv)) + 2, int(round(du)) - 1:int(round(du)) + 2] = 2.0
+    undistortion = LensUndistortion(camera, coefficients, (w, h))
+    out_color, out_depth = undistortion.color(color), undistortion.depth(depth)
+    assert out_color.shape == (h, w, 3) and out_depth.shape == (h, w)
+    vv, uu = np.nonzero(out_color[..., 0] > 0.5)
+    assert abs(uu.mean() - pinhole[0]) < 1.0 and abs(vv.mean() - pinhole[1]) < 1.0
+    assert abs(pinhole[0] - du) > 2.0  # the distortion did move the point
+    assert set(np.unique(out_depth)) <= {0.0, 2.0}  # nearest sampling: no mixed depths
+
+
+def test_dataset_distortion_undistorts_frames_and_rejects_bad_coefficients(tmp_path):
+    from mipslam.datasets.images import LensUndistortion
+
+    write_tum(tmp_path / "seq", n=2)
+    raw = TUMSequence(tmp_path / "seq", tum_cfg(tmp_path / "seq"))
+    coefficients = (0.1, -0.05, 0.0, 0.0)
+    seq = TUMSequence(tmp_path / "seq", tum_cfg(tmp_path / "seq", distortion=coefficients))
+    i = raw.intrinsics
+    expected = LensUndistortion((i.fx, i.fy, i.cx, i.cy), coefficients, (i.width, i.height))
+    np.testing.assert_array_equal(seq[1].color.numpy(), expected.color(raw[1].color.numpy()))
+    np.testing.assert_array_equal(seq[1].depth.numpy(), expected.depth(raw[1].depth.numpy()))
+    assert seq.intrinsics == raw.intrinsics
+    same = TUMSequence(tmp_path / "seq", tum_cfg(tmp_path / "seq", distortion=()))
+    assert torch.equal(same[1].color, raw[1].color)
+    with pytest.raises(ConfigError, match="dataset.distortion"):
+        DatasetConfig(distortion=(0.1, 0.2, 0.3))
+    with pytest.raises(ConfigError, match="dataset.distortion"):
+        DatasetConfig(distortion=(0.1, float("nan"), 0.0, 0.0))

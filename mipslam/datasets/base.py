@@ -17,7 +17,7 @@ from typing import Iterator, Literal, Protocol, runtime_checkable
 import numpy as np
 import torch
 
-from mipslam.datasets.images import downscale_color, downscale_depth, read_color, read_depth
+from mipslam.datasets.images import LensUndistortion, downscale_color, downscale_depth, read_color, read_depth
 from mipslam.errors import DatasetError
 from mipslam.types import Frame, Intrinsics
 
@@ -117,6 +117,7 @@ class SequenceBase:
         max_frames: int,
         downscale: int,
         where: Path,
+        distortion: tuple[float, ...] = (),  # (k1, k2, p1, p2[, k3]) of the images on disk; () = none
     ) -> None:
         keep = select_indices(len(records), first_frame, stride, max_frames, where)
         self._records = [records[k] for k in keep]
@@ -146,6 +147,9 @@ class SequenceBase:
         fx, fy, cx, cy = (float(v) for v in camera)
         self.full_intrinsics = Intrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height)
         self.intrinsics = self._delivered_intrinsics(self.full_intrinsics)
+        self.distortion = tuple(float(v) for v in distortion)
+        self._undistortion = (LensUndistortion((fx, fy, cx, cy), self.distortion, (width, height))
+                              if any(v != 0.0 for v in self.distortion) else None)
 
     def _delivered_intrinsics(self, full: Intrinsics) -> Intrinsics:
         d = self.downscale
@@ -205,6 +209,9 @@ class SequenceBase:
                 f"depth image is {depth.shape[1]}x{depth.shape[0]} but its colour image {record.color_path.name} is "
                 f"{color.shape[1]}x{color.shape[0]}; colour and depth must be registered at the same size",
             )
+        if self._undistortion is not None:
+            color = self._undistortion.color(color)
+            depth = self._undistortion.depth(depth)
         if self.downscale > 1:
             color = downscale_color(color, self.downscale)
             depth = downscale_depth(depth, self.downscale)

@@ -169,3 +169,32 @@ def downscale_depth(
     needed = max(1, math.ceil(min_valid_fraction * factor * factor))
     out = np.where((count >= needed) & (size > 0), total / np.maximum(size, 1), 0.0)
     return out.astype(np.float32)
+
+
+class LensUndistortion:
+    """Removes radial-tangential lens distortion (OpenCV's model) from the images of one camera.
+
+    ``camera`` = (fx, fy, cx, cy) px and ``coefficients`` = (k1, k2, p1, p2[, k3]) of the images on disk,
+    ``size`` = (width, height). The undistorted image keeps the same intrinsics and size (a pinhole
+    camera with the given fx..cy), so nothing downstream changes. Colour is resampled bilinearly;
+    depth (metres, 0 = none) takes the nearest sample, never a mix of two surfaces. Output pixels whose
+    source lies outside the image get colour 0 and depth 0 (no measurement).
+    """
+
+    def __init__(self, camera: tuple[float, float, float, float], coefficients: tuple[float, ...],
+                 size: tuple[int, int]):
+        fx, fy, cx, cy = camera
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        D = np.asarray(coefficients, dtype=np.float64)
+        # [H, W] float32 each: for every output pixel, where to sample the distorted image
+        self.map_x, self.map_y = cv2.initUndistortRectifyMap(K, D, None, K, tuple(size), cv2.CV_32FC1)
+
+    def color(self, color: np.ndarray) -> np.ndarray:
+        """color [H, W, 3] float in [0, 1] -> [H, W, 3]"""
+        return cv2.remap(color, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                         borderValue=0)
+
+    def depth(self, depth: np.ndarray) -> np.ndarray:
+        """depth [H, W] metres -> [H, W] (nearest sample; 0 outside the source image)"""
+        return cv2.remap(depth, self.map_x, self.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                         borderValue=0)

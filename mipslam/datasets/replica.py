@@ -180,7 +180,7 @@ class ReplicaSequence(SequenceBase):
             camera=(merged["fx"], merged["fy"], merged["cx"], merged["cy"]),
             expected_size=expected_size, size_source=source, depth_scale=depth_scale,
             first_frame=cfg.first_frame, stride=cfg.stride, max_frames=cfg.max_frames, downscale=cfg.downscale,
-            where=results,
+            where=results, distortion=tuple(cfg.distortion or ()),
         )
 
     @classmethod

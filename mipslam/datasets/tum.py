@@ -26,7 +26,10 @@ Camera: ``dataset.camera`` = freiburg1 | freiburg2 | freiburg3 selects the calib
 the TUM benchmark page; when unset, the folder name (``freiburg1``, ``fr1`` ...) or the comment
 header of rgb.txt (which names the recording) decides; explicit ``dataset.fx, fy, cx, cy`` override
 the preset value by value (all four are needed when no preset applies). ``dataset.depth_scale``
-overrides 5000. Width and height always come from the images.
+overrides 5000. Width and height always come from the images. Lens distortion: none unless
+``dataset.distortion`` gives it. The presets leave TUM's images raw, as TUM advises for its pre-registered
+depth: with freiburg1's published coefficients the colour residual of fr1_xyz frame pairs under the
+ground-truth poses rises (median 0.0170 -> 0.0175; colour alone undistorted 0.0177).
 """
 from __future__ import annotations
 
@@ -271,7 +274,7 @@ class TUMSequence(SequenceBase):
             expected_size=expected, size_source="dataset.width/height",
             depth_scale=cfg.depth_scale if cfg.depth_scale is not None else TUM_DEPTH_SCALE,
             first_frame=cfg.first_frame, stride=cfg.stride, max_frames=cfg.max_frames, downscale=cfg.downscale,
-            where=rgb_list,
+            where=rgb_list, distortion=tuple(cfg.distortion or ()),
         )
 
     @classmethod
