@@ -18,12 +18,18 @@ On each keyframe (DESIGN.md "Losses" and "Model only what a scene requires"):
 
 After the last frame, :meth:`Mapper.refine` takes ``final_iterations`` further steps of the same loss
 over all keyframes at fixed poses (the pipeline's final refinement).
+
+The stage's steps in the frame loop read and update the :class:`~mipslam.state.SLAMState`:
+:func:`map_keyframe` (a new keyframe), :func:`refine_after_correction` (after a loop correction) and
+:func:`refine_map` (after the last frame). Poses are camera-to-world ``T_wc`` [4, 4] float64 (OpenCV
+camera), images float32 on the map's device: colour [H, W, 3] in [0, 1], depth [H, W] metres (0 = none).
 """
 from __future__ import annotations
 
+import logging
 import math
-from dataclasses import dataclass
-from typing import Iterable
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Iterable
 
 import torch
 
@@ -39,12 +45,19 @@ from mipslam.gaussians import (
     gaussians_from_rgbd,
     prune_mask,
 )
+from mipslam.geometry import nearest_rigid
 from mipslam.geometry.se3 import se3_exp, se3_inverse
 from mipslam.losses.frequency import frequency_loss
 from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, rgbd_l1_loss, rgbd_masks
 from mipslam.losses.regularizers import isotropy_loss
 from mipslam.rendering import frustum_indices, render_view, view_sampling_rates
 from mipslam.types import Intrinsics
+
+if TYPE_CHECKING:
+    from mipslam.datasets import FrameCache
+    from mipslam.state import FrameRecord, SLAMState
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -234,3 +247,63 @@ class Mapper:
         first, last, refined = self.optimize(gmap, optimizer, views, iterations, generator)
         pruned = self.prune(gmap, optimizer, views[0])
         return MappingResult(added, pruned, iterations, first, last, refined)
+
+
+# ----------------------------------------------------------------------------- the steps in the frame loop
+
+def mapping_view(state: "SLAMState", frames: "FrameCache", keyframe_id: int) -> MappingView:
+    """Keyframe ``keyframe_id`` as mapping sees it: its image, its current pose and its exposure (keyframe 0's
+    pose stays fixed: it fixes the gauge)."""
+    record = state.keyframe_record(keyframe_id)
+    frame = frames[record.index]
+    return MappingView(keyframe_id, frame.color, frame.depth, record.T_wc, record.exposure.to(frame.color.device),
+                       frame.intrinsics, optimize_pose=keyframe_id != 0)
+
+
+def map_keyframe(mapper: Mapper, state: "SLAMState", frames: "FrameCache", record: "FrameRecord",
+                 keyframe_ids: tuple[int, ...]) -> MappingResult:
+    """Map the new keyframe ``record`` over the keyframes ``keyframe_ids`` (the window, newest first, then the
+    random past ones; :func:`mipslam.keyframes.insert_keyframe`), and take the refined poses (projected onto
+    SE(3)) into ``state``. ``mapping.first_frame_iterations`` steps on the first keyframe, ``iterations`` after."""
+    views = [mapping_view(state, frames, kf) for kf in keyframe_ids]
+    cfg = mapper.config
+    iterations = cfg.first_frame_iterations if record.keyframe_id == 0 else cfg.iterations
+    result = mapper.map_keyframe(state.gaussian_map, state.optimizer, views, iterations=iterations,
+                                 generator=state.generator, frame_index=record.index)
+    for keyframe_id, T_wc in result.refined_T_wc:
+        state.set_keyframe_pose(keyframe_id, nearest_rigid(T_wc))
+    return result
+
+
+def refine_after_correction(mapper: Mapper, state: "SLAMState", frames: "FrameCache", keyframe_ids: list[int],
+                            iterations: int) -> int:
+    """``iterations`` mapping steps over ``keyframe_ids`` at their corrected poses (held fixed); returns the steps.
+
+    Moving Gaussians with their anchors cannot undo what mapping did before a loop correction: old
+    Gaussians re-fitted from drifted views sit where those views put them. A few steps of the mapping loss
+    over the loop's keyframes (no densification, no pose updates, so the pose-graph solution stands)
+    reconcile the map with the corrected poses.
+    """
+    if iterations == 0 or len(state.gaussian_map) == 0:
+        return 0
+    views = [replace(mapping_view(state, frames, k), optimize_pose=False) for k in keyframe_ids]
+    mapper.optimize(state.gaussian_map, state.optimizer, views, iterations, state.generator)
+    return iterations
+
+
+def refine_map(mapper: Mapper, state: "SLAMState", frames: "FrameCache") -> int:
+    """The final refinement: ``mapping.final_iterations`` mapping steps after the last frame, one keyframe per
+    step, every keyframe once per pass in an order drawn from the run's generator; poses fixed. Returns the
+    steps taken (fewer if a loss turned non-finite; the map then keeps its last finite state)."""
+    iterations, count = mapper.config.final_iterations, len(state.keyframe_frames)
+    if iterations == 0 or count == 0:
+        return 0
+    passes = -(-iterations // count)
+    order = torch.cat([torch.randperm(count, generator=state.generator) for _ in range(passes)])[:iterations]
+    views = (mapping_view(state, frames, int(k)) for k in order)  # Mapper.refine never moves a pose
+    losses = mapper.refine(state.gaussian_map, state.optimizer, views)
+    if losses:
+        n = min(count, len(losses))
+        log.info("final refinement: %d steps over %d keyframes; mean mapping loss %.4f over the first %d steps, "
+                 "%.4f over the last %d", len(losses), count, sum(losses[:n]) / n, n, sum(losses[-n:]) / n, n)
+    return len(losses)
