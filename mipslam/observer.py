@@ -10,8 +10,9 @@ is charged to the last frame. Nothing before the first frame (loading, warm-up) 
 ``diagnostics`` asks stages for measurements that cost time and change nothing (the map's PSNR
 around a loop correction); off by default, so the hot path never pays for them.
 
-Benchmarks observe a run by subclassing and overriding the event methods :meth:`on_stage` (a stage
-starts or ends) and :meth:`on_frame` (a frame is done); they never patch pipeline functions.
+Benchmarks observe a run by subclassing and overriding the event methods :meth:`on_frame_start`,
+:meth:`on_stage` (a stage starts or ends; also the untimed "checkpoint" and "outputs") and
+:meth:`on_frame` (a frame is done); they never patch pipeline functions.
 Timings are outputs (``timings.json``), not SLAM state; a checkpoint carries them so that a resumed
 run's ``timings.json`` covers every session.
 """
@@ -54,6 +55,7 @@ class Observer:
 
     def begin_frame(self, index: int) -> None:
         self.frame_index, self._frame = index, {}
+        self.on_frame_start(index)
 
     def end_frame(self, record: "FrameRecord", state: "SLAMState") -> None:
         """Close the open frame: one entry per declared stage, then :meth:`on_frame`."""
@@ -96,6 +98,9 @@ class Observer:
         values[-1] += seconds
 
     # ------------------------------------------------------------------ events (override in benchmarks)
+
+    def on_frame_start(self, index: int) -> None:
+        """Frame ``index`` of the sequence starts (before it is read)."""
 
     def on_stage(self, name: str, entering: bool) -> None:
         """A stage starts (``entering``) or ends; :attr:`frame_index` is the open frame (None outside frames)."""
