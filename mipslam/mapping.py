@@ -99,7 +99,11 @@ class Mapper:
 
     @torch.no_grad()
     def densify(self, gmap: GaussianMap, optimizer: GaussianOptimizer, view: MappingView, frame_index: int) -> int:
-        """Add Gaussians where the map does not explain ``view``; returns how many were added."""
+        """Add Gaussians where the map does not explain ``view``; returns how many were added.
+
+        The map is rendered at ``view.T_wc`` [4, 4] (camera-to-world, OpenCV camera); a selected pixel (u, v) with
+        depth d metres becomes a Gaussian at ``T_wc K^-1 d (u, v, 1)`` (world, metres) with std-dev
+        ``initial_scale_factor * stride * d / f`` metres. ``frame_index`` is recorded as its creation frame."""
         cfg = self.config
         budget = cfg.max_gaussians - len(gmap)
         if budget <= 0:
@@ -137,7 +141,9 @@ class Mapper:
 
     @torch.no_grad()
     def prune(self, gmap: GaussianMap, optimizer: GaussianOptimizer, view: MappingView) -> int:
-        """Remove negligible, non-finite or absurdly large Gaussians and enforce the count cap."""
+        """Remove negligible, non-finite or absurdly large Gaussians and enforce the count cap; returns how many.
+
+        Sizes are judged in pixels as seen from ``view.T_wc`` [4, 4] (std-dev metres x focal px / distance m)."""
         if len(gmap) == 0:
             return 0
         g = gmap.activated()
@@ -175,7 +181,11 @@ class Mapper:
 
     def optimize(self, gmap: GaussianMap, optimizer: GaussianOptimizer, views: list[MappingView], iterations: int,
                  generator: torch.Generator) -> tuple[float, float, tuple[tuple[int, torch.Tensor], ...]]:
-        """Adam steps over ``views`` (newest first); returns (first loss, last loss, refined poses)."""
+        """Adam steps over ``views`` (newest first); returns (first loss, last loss, refined poses).
+
+        Step i uses ``views[0]`` on even steps and a view drawn with ``generator`` from the others on odd ones.
+        A view with ``optimize_pose`` gets a left increment ``T_cw = exp(xi) T_cw0`` (xi [6] = [rho m, phi rad],
+        camera frame); refined poses come back as (keyframe id, T_wc [4, 4] float64 on CPU)."""
         device, dtype = gmap.device, gmap.dtype
         T_cw_init = [se3_inverse(v.T_wc).to(device=device, dtype=dtype) for v in views]
         pose_deltas = {i: torch.zeros(6, device=device, dtype=dtype, requires_grad=True)
@@ -240,7 +250,8 @@ class Mapper:
 
     def map_keyframe(self, gmap: GaussianMap, optimizer: GaussianOptimizer, views: list[MappingView], *,
                      iterations: int, generator: torch.Generator, frame_index: int) -> MappingResult:
-        """Densify at the newest view (``views[0]``), optimise over all views, prune."""
+        """Densify at the newest view (``views[0]``), optimise over all views for ``iterations`` steps, prune.
+        Views carry images on the map's device (colour [H, W, 3], depth [H, W] metres) and T_wc [4, 4] float64."""
         added = self.densify(gmap, optimizer, views[0], frame_index)
         if self.render_config.filter_3d:  # 3-4 % of a balanced keyframe's mapping: only when it is used
             self.observe_sampling_rates(gmap, views)

@@ -14,6 +14,7 @@ import math
 import signal
 import sys
 import time
+from collections import OrderedDict
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +34,8 @@ from mipslam.state import FrameRecord, SLAMState
 
 log = logging.getLogger(__name__)
 
+# tqdm's default bar, with the rate always in frames/s (tqdm turns a rate below 1 into s/frame)
+_BAR_FORMAT = "{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, {rate_noinv_fmt}{postfix}]"
 # Seconds between progress log lines when there is no progress bar (stderr not a terminal: CI, nohup, a pipe).
 PROGRESS_LOG_S = 5.0
 
@@ -160,13 +163,13 @@ class Progress:
     def __init__(self, total: int, start_frame: int, *, interval_s: float = PROGRESS_LOG_S):
         self.total, self.start_frame, self.interval_s = total, start_frame, interval_s
         self.bar = tqdm(total=total, initial=start_frame, desc="mipslam", unit="frame", dynamic_ncols=True,
-                        disable=None, file=sys.stderr)
+                        disable=None, file=sys.stderr, bar_format=_BAR_FORMAT)
         self.started = self.last = time.perf_counter()
 
     def frame_done(self, state: SLAMState, record: FrameRecord) -> None:
         if not self.bar.disable:
-            self.bar.set_postfix(keyframes=len(state.keyframe_frames), gaussians=len(state.gaussian_map),
-                                 loss=f"{record.tracking_loss:.4f}", refresh=False)
+            self.bar.set_postfix(OrderedDict(keyframes=len(state.keyframe_frames), gaussians=len(state.gaussian_map),
+                                             loss=f"{record.tracking_loss:.4f}"), refresh=False)
             self.bar.update(1)
             return
         now = time.perf_counter()

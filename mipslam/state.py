@@ -97,6 +97,7 @@ class SLAMState:
     # ------------------------------------------------------------------ updates
 
     def set_keyframe_pose(self, keyframe_id: int, T_wc: torch.Tensor) -> None:
+        """Keyframe ``keyframe_id`` takes pose ``T_wc`` [4, 4] (camera-to-world; stored float64 on CPU)."""
         position = self.keyframe_frames[keyframe_id]
         self.frames[position] = replace(self.frames[position], T_wc=T_wc.to(torch.float64).cpu())
 

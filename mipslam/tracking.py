@@ -224,7 +224,8 @@ def _converged(optimizer: torch.optim.Optimizer, pose_params: list[torch.Tensor]
 
 
 def initial_result(T_wc: torch.Tensor) -> TrackingResult:
-    """The first frame defines the map's frame: nothing to track against."""
+    """The first frame defines the map's frame: nothing to track against.  T_wc [4, 4] camera-to-world -> the
+    result at that pose (float64 on CPU), status "initial"."""
     return TrackingResult(T_wc.to(torch.float64).cpu().clone(), torch.zeros(2), 0.0, 0, 1.0, True, "initial")
 
 
