@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -11,7 +12,9 @@ from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry import se3_exp, se3_inverse, se3_log
 from mipslam.pipeline import run_slam
 from mipslam.rendering import frustum_subset, render_view
-from mipslam.tracking import Tracker, constant_velocity_prediction
+import mipslam.tracking as tracking
+from mipslam.state import FrameRecord, SLAMState
+from mipslam.tracking import Tracker, TrackingResult, constant_velocity_prediction, relocalise
 from mipslam.types import Intrinsics
 from tiny_runs import REPO, tiny_config
 
@@ -145,3 +148,35 @@ def test_the_motion_model_moves_with_a_refined_previous_pose_once():
     # unrefined, it is the plain constant-velocity model; with one frame, the previous pose
     torch.testing.assert_close(constant_velocity_prediction(T1_tracked, T1_tracked, T0), T1_tracked @ T1_tracked)
     torch.testing.assert_close(constant_velocity_prediction(T1, T1_tracked, None), T1)
+
+
+def test_the_coarse_levels_get_the_configured_share_of_the_iterations(one_frame_map):
+    _, config, sequence, _ = one_frame_map
+    for share, expected in ((0.5, [20, 20]), (0.25, [10, 30]), (0.0, [40])):
+        settings = replace(config.tracking, iterations=40, coarse_to_fine=(0.5,), coarse_share=share)
+        levels = Tracker(settings, config.render)._levels(sequence[0])
+        assert [level.iterations for level in levels] == expected, share
+        assert levels[-1].intrinsics == sequence[0].intrinsics  # full resolution last
+
+
+def test_relocalisation_runs_above_the_loss_ratio_and_accepts_the_configured_jump(one_frame_map, monkeypatch):
+    _, config, sequence, gaussians = one_frame_map
+    frame = sequence[0]
+    state = SLAMState.initial(config.mapping, 0, torch.device("cpu"))
+    state.frames.append(FrameRecord(0, 0.0, sequence.gt_T_wc[0], torch.zeros(2), "ok", 0.01, 1, 0, -1,
+                                    sequence.gt_T_wc[0]))
+    state.running_loss = 0.01
+    asked = []
+
+    def alignment(*args):
+        asked.append(args[-1])  # the registration options
+        return SimpleNamespace(accepted=False)
+
+    monkeypatch.setattr(tracking, "register_rgbd_odometry", alignment)
+    settings = replace(config.tracking, relocalise_loss_ratio=2.0, relocalise_max_m=0.3, relocalise_max_deg=20.0)
+    tracker = Tracker(settings, config.render)
+    usual = TrackingResult(sequence.gt_T_wc[0], torch.zeros(2), 0.015, 5, 1.0, True, "ok")
+    assert relocalise(tracker, state, frame, {0: frame}, gaussians, usual) is usual and not asked
+    high = replace(usual, loss=0.05)  # 5x the running level, above the ratio 2
+    assert relocalise(tracker, state, frame, {0: frame}, gaussians, high) is high  # the alignment was refused
+    assert [(o.max_correction_m, o.max_correction_deg) for o in asked] == [(0.3, 20.0)]
