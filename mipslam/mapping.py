@@ -132,7 +132,7 @@ class Mapper:
 
     @torch.no_grad()
     def observe_sampling_rates(self, gmap: GaussianMap, views: Iterable[MappingView]) -> None:
-        """Raise each Gaussian's ``max_sampling_rate`` to its rate in every view that trains it (the
+        """Raise each Gaussian's ``max_sampling_rate`` [N] (px/m) to its rate in every view that trains it (the
         Mip-Splatting 3D filter's training cameras). :meth:`map_keyframe` calls it when ``render.filter_3d``
         is on; otherwise each Gaussian keeps the rate of the view that created it."""
         for view in views:
@@ -158,7 +158,8 @@ class Mapper:
 
     def view_loss(self, gmap: GaussianMap, view: MappingView, T_cw: torch.Tensor,
                   masks: RGBDMasks | None = None, rows: torch.Tensor | None = None) -> torch.Tensor:
-        """The mapping loss of one view (module docstring), differentiable w.r.t. the map and ``T_cw``.
+        """The mapping loss of one view (module docstring), differentiable w.r.t. the map and ``T_cw`` [4, 4]
+        (world-to-camera, the map's dtype and device). Returns a scalar tensor.
 
         What :meth:`optimize` computes once per view and passes in: ``masks``, the view's
         :func:`rgbd_masks` (they depend on the targets alone), and ``rows`` [M] int64, the Gaussians
