@@ -5,8 +5,8 @@ and as many as keep at least 240 frames per lap, where the camera looks outwards
 360 degrees: 2 laps for 500 frames, 8 for 2000). The first lap covers the room and every later lap
 revisits it. (With fewer than 240 frames per lap, e.g. 100 frames, each lap sweeps the +x wall.) ``mipslam`` runs it with
 ``configs/synthetic.yaml --preset fast`` (``run.threads`` 1 by default, checkpoints every 50
-frames, 2 kept) in this process, and a per-frame probe (the pipeline's ``after_tracking`` hook,
-which returns the tracking result unchanged) records, for every frame:
+frames, 2 kept) in this process, and a per-frame probe (the run's observer,
+:class:`mipslam.observer.Observer`, sampling at the end of each frame's tracking) records, for every frame:
 
 * wall time and this process's CPU time since the previous frame's probe (tracking, keyframe
   decision, mapping, loop closure, checkpoint writes: everything the frame loop does), seconds;
@@ -62,7 +62,8 @@ from mipslam.checkpoint import list_checkpoints  # noqa: E402
 from mipslam.config import load_config  # noqa: E402
 from mipslam.evaluation.trajectory import evaluate_trajectory  # noqa: E402
 from mipslam.io.tum import read_tum_trajectory  # noqa: E402
-from mipslam.pipeline import PipelineHooks, run_slam  # noqa: E402
+from mipslam.observer import Observer  # noqa: E402
+from mipslam.pipeline import run_slam  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 FULL_TURN_FRAMES_PER_LAP = 240  # data_synth.trajectories.FULL_TURN_MIN_FRAMES
@@ -88,9 +89,9 @@ def rss_mib() -> float:
     return float("nan")
 
 
-@dataclass
-class FrameProbe:
-    """The ``after_tracking`` hook: samples time, RSS, Gaussians and checkpoint files once per frame."""
+@dataclass(eq=False)
+class FrameProbe(Observer):
+    """The run's observer: samples time, RSS, Gaussians and checkpoint files once per frame (after tracking)."""
 
     checkpoints: Path
     progress: Path | None = None  # one JSON line per frame, flushed at once (a run cut short keeps its curve)
@@ -129,16 +130,25 @@ class FrameProbe:
         """CPU seconds of this process per frame (insensitive to other processes sharing the cores)."""
         return self.cpu_seconds[1:] + [self.last_cpu_s]
 
-    def __call__(self, index, result, state):
+    def __post_init__(self):
+        Observer.__init__(self)
+
+    def on_stage(self, name: str, entering: bool) -> None:
+        """At the end of each frame's tracking: time, CPU time, RSS and checkpoint files."""
+        if name != "tracking" or entering:
+            return
         now, cpu = time.perf_counter(), time.process_time()
-        self.frame.append(int(index))
+        self.frame.append(int(self.frame_index))
         self.seconds.append(float("nan") if self._last is None else now - self._last)
         self.cpu_seconds.append(float("nan") if self._last_cpu is None else cpu - self._last_cpu)
         self._last, self._last_cpu = now, cpu
         self.rss_mib.append(rss_mib())
-        self.gaussians.append(len(state.gaussian_map))
         self.checkpoint_files.append(len(list_checkpoints(self.checkpoints)))
-        self.keyframes_before.append(len(state.keyframe_frames))
+
+    def on_frame(self, record, state) -> None:
+        """The map as the frame's tracking saw it: Gaussians after the previous frame, keyframes before this one."""
+        self.gaussians.append(state.gaussian_counts[-2] if len(state.gaussian_counts) > 1 else 0)
+        self.keyframes_before.append(len(state.keyframe_frames) - (1 if record.keyframe_id >= 0 else 0))
         if self.progress is not None:
             with open(self.progress, "a", encoding="utf-8") as out:
                 period, cpu_period = self.seconds[-1], self.cpu_seconds[-1]
@@ -147,7 +157,6 @@ class FrameProbe:
                                       "rss_mib": self.rss_mib[-1], "gaussians": self.gaussians[-1],
                                       "checkpoint_files": self.checkpoint_files[-1],
                                       "keyframes_before": self.keyframes_before[-1]}) + "\n")
-        return result
 
 
 def default_laps(frames: int) -> int:
@@ -326,7 +335,7 @@ def main(argv: list[str] | None = None) -> int:
         probe = FrameProbe(run_dir / "checkpoints", args.progress)
         rss_start = rss_mib()
         started = time.perf_counter()
-        summary = run_slam(config, run_dir, evaluate=False, hooks=PipelineHooks(after_tracking=probe))
+        summary = run_slam(config, run_dir, evaluate=False, observer=probe)
         run_s = time.perf_counter() - started
         probe.finish(summary.gaussians, summary.keyframes)
         metrics = evaluate_trajectory(read_tum_trajectory(run_dir / "traj_gt.txt"),

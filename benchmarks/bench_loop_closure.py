@@ -2,7 +2,7 @@
 
 The sequence is data_synth's ``loop`` trajectory (by default 241 frames: one lap of the room, the
 camera looking outwards and turning 360 degrees, back exactly at its start). Drift is injected
-with a biased odometer (:class:`mipslam.loop.faults.BiasedOdometer`): each frame's pose is the
+with a biased odometer (``BiasedOdometer`` of tests/fault_injection.py): each frame's pose is the
 previous estimate times the ground-truth motion times ``Exp(bias)``; mapping, keyframes and loop
 closure run as usual on those poses. The same sequence and bias run with
 
@@ -33,6 +33,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
+import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -48,9 +49,11 @@ from mipslam.evaluation.trajectory import evaluate_trajectory  # noqa: E402
 from mipslam.geometry import se3_inverse  # noqa: E402
 from mipslam.io.ply import read_map_ply  # noqa: E402
 from mipslam.io.tum import read_tum_trajectory  # noqa: E402
-from mipslam.loop.faults import BiasedOdometer  # noqa: E402
 from mipslam.pipeline import PipelineHooks, run_slam  # noqa: E402
 from mipslam.rendering import render_view  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the test helpers
+from fault_injection import BiasedOdometer  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 

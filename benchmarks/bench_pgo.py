@@ -1,6 +1,6 @@
 """Benchmark: SA-PGO (each switch alone and both) against plain full LM and Open3D's optimizer.
 
-Noisy synthetic pose graphs (mipslam.loop.synthetic): a camera circling 2 laps (100 keyframes)
+Noisy synthetic pose graphs (tests/synthetic_pose_graphs.py): a camera circling 2 laps (100 keyframes)
 or 4 laps (1000 keyframes), odometry edges with noise, loop edges at the same place on later
 laps, optionally noisy segments (25% of the chain with 5x noise but nominal information) and
 wrong loops (2 of ~12 at 100 nodes, 5 of ~150 at 1000 nodes, about 1 m / 0.3 rad off, stated
@@ -23,15 +23,18 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
 import statistics  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from mipslam.loop.pose_graph import PoseGraph  # noqa: E402
 from mipslam.loop.solver import PGOOptions, optimize_pose_graph  # noqa: E402
-from mipslam.loop.synthetic import make_synthetic_pose_graph, trajectory_errors  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the test helpers
+from synthetic_pose_graphs import make_synthetic_pose_graph, trajectory_errors  # noqa: E402
 
 # Open3D orders twists (rotation, translation); mipslam (translation, rotation).
 _TO_O3D = np.r_[3, 4, 5, 0, 1, 2]

@@ -214,7 +214,8 @@ def make_case(torch, count, width, height, seed):
 def pgo_sweep(args) -> dict:
     from mipslam.config import LoopConfig
     from mipslam.loop.solver import PGOOptions, optimize_pose_graph_window
-    from mipslam.loop.synthetic import make_synthetic_pose_graph
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the test helpers
+    from synthetic_pose_graphs import make_synthetic_pose_graph
 
     sa_pgo = PGOOptions(spectral_edge_weighting=True, low_frequency_correction=True)
     window = LoopConfig().pgo_window_keyframes

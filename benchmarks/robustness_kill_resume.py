@@ -19,9 +19,10 @@ reference run, then per trial:
    ``frames.json`` with the reference: identical up to float32 round-off (poses 1e-6, map 1e-5).
 
 Where the child was when it died: the child is ``python THIS_FILE --child MARKER -- ARGV``, which
-runs ``mipslam.cli.main(ARGV)`` (exactly ``mipslam run``) after wrapping the pipeline's stage
-functions so that each writes its name to the small MARKER file on entry (a ``pwrite`` of 64 bytes,
-no fsync: the page cache outlives a killed process). The parent reads the marker after the kill.
+runs ``mipslam.cli.main(ARGV)`` (exactly ``mipslam run``) with an observer
+(:class:`mipslam.observer.Observer`) that writes each stage's name to the small MARKER file on entry
+(a ``pwrite`` of 64 bytes, no fsync: the page cache outlives a killed process). The parent reads the
+marker after the kill.
 
 Prints a table and a summary; exits 1 on any mismatch (or failed resume), 0 otherwise.
 
@@ -31,6 +32,7 @@ Run: ``.venv/bin/python benchmarks/robustness_kill_resume.py --trials 20 --seed 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import random
@@ -60,10 +62,9 @@ MARKER_BYTES = 64
 # ----------------------------------------------------------------------------- the child: mipslam run with phase markers
 
 def _child_main(marker: Path, argv: list[str]) -> int:
-    """``mipslam run`` (``mipslam.cli.main(argv)``) with each pipeline stage announcing itself in ``marker``."""
-    import mipslam.outputs
-    import mipslam.pipeline as pipeline
+    """``mipslam run`` (``mipslam.cli.main(argv)``) with an observer that announces each phase in ``marker``."""
     from mipslam.cli import main
+    from mipslam.observer import Observer
 
     # A process started in the background by a non-interactive shell inherits an ignored SIGINT; a user's
     # Ctrl-C is not ignored, so give the run Python's usual KeyboardInterrupt handler.
@@ -78,25 +79,21 @@ def _child_main(marker: Path, argv: list[str]) -> int:
         text = f"{phase} {counts[phase]} {frame[0]}".encode()
         os.pwrite(fd, text.ljust(MARKER_BYTES), 0)
 
-    def wrap(owner, name: str, phase: str, *, frame_arg: int | None = None):
-        inner = getattr(owner, name)
+    class PhaseMarker(Observer):
+        """Writes "frame", each stage ("tracking", "mapping", "loop", "checkpoint", "outputs", ...) on entry and
+        "between" on exit."""
 
-        def wrapped(*args, **kwargs):
-            if frame_arg is not None:
-                frame[0] = int(args[frame_arg])
-            mark(phase)
-            try:
-                return inner(*args, **kwargs)
-            finally:
-                mark("between")
-        setattr(owner, name, wrapped)
+        def on_frame_start(self, index: int) -> None:
+            frame[0] = index
+            mark("frame")
 
-    wrap(pipeline, "process_frame", "frame", frame_arg=2)
-    wrap(pipeline, "track", "tracking")
-    wrap(pipeline, "map_keyframe", "mapping")
-    wrap(pipeline, "close_loops", "loop")
-    wrap(pipeline, "_checkpoint", "checkpoint")
-    wrap(mipslam.outputs, "write_run_outputs", "outputs")
+        def on_stage(self, name: str, entering: bool) -> None:
+            mark(name if entering else "between")
+
+    # The CLI calls mipslam.pipeline.run_slam; give that call the observer (its public ``observer`` argument).
+    import mipslam.pipeline
+
+    mipslam.pipeline.run_slam = functools.partial(mipslam.pipeline.run_slam, observer=PhaseMarker())
     mark("startup")
     code = main(argv)
     mark("exited")

@@ -23,6 +23,10 @@ from typing import Any, Literal, Mapping
 import yaml
 
 from mipslam.errors import ConfigError
+from mipslam.loop.descriptors import CandidateOptions
+from mipslam.loop.registration import RegistrationOptions
+from mipslam.loop.solver import PGOOptions
+from mipslam.render import RenderOptions, render_option_problems
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 PRESETS = ("fast", "balanced", "accurate")
@@ -50,6 +54,9 @@ class RunConfig:
     # mallopt M_MMAP_THRESHOLD, fixed); 0 keeps glibc's dynamic threshold. 64 halves the RSS creep of
     # a 2000-frame run (+31 -> +17 MiB) but costs 11 % frames/s (docs/robustness.md, failure 10).
     mmap_threshold_kib: int = 0
+    # Measurements that cost time and change no result (the map's PSNR at the loop's keyframes around each loop
+    # correction, in loops.json); off, a run renders nothing it does not need.
+    diagnostics: bool = False
 
     def __post_init__(self):
         _check(self.threads >= 0, "run.threads", "must be >= 0 (0 = torch default)")
@@ -101,37 +108,51 @@ class DatasetConfig:
                "must be finite numbers")
 
 
+# Render config key -> renderer option (mipslam.render.RenderOptions): the options' defaults and range checks
+# are the config's, defined once in the renderer (which imports no config).
+RENDER_OPTION_KEYS = {
+    "near_plane": "near_plane",
+    "eaa_k_sigma": "k_sigma",
+    "eaa_max_nodes": "eaa_max_nodes",
+    "eaa_gamma": "eaa_gamma",
+    "eaa_eta": "eaa_eta",
+    "eaa_tau": "eaa_tau",
+    "eaa_single_node_sigma": "eaa_single_node_sigma",
+}
+
+
 @dataclass(frozen=True)
 class RenderConfig:
-    """Renderer settings (DESIGN.md, renderer contract and EAA)."""
+    """Renderer settings (DESIGN.md, renderer contract and EAA). The EAA constants and the near plane default
+    to :class:`~mipslam.render.RenderOptions`' values (measured against `exact`: docs/renderer.md,
+    benchmarks/bench_aliasing.py), and are checked by its rules."""
 
     mode: Literal["point", "mip", "ewa", "eaa", "exact"] = "eaa"
     backend: Literal["auto", "torch", "cpu"] = "auto"
     filter_3d: bool = False  # Mip-Splatting 3D smoothing filter
-    filter_3d_scale: float = 0.2
-    # EAA constants: defaults measured against `exact` (docs/renderer.md, benchmarks/bench_aliasing.py).
-    eaa_max_nodes: int = 4  # node cap n_max: the speed/accuracy knob (1 = point value)
-    eaa_gamma: float = 0.5  # row growth of a sub-pixel splat with anisotropy: n = 2 (1 + gamma ln kappa)
-    eaa_eta: float = 0.0  # boundary emphasis b(d) = 1 + eta exp(-d / tau)
-    eaa_tau: float = 0.25  # pixels
-    eaa_single_node_sigma: float = 1.0  # minor-axis std-dev (px) from which 1 moment-matched node suffices
-    eaa_k_sigma: float = 3.0
-    near_plane: float = 0.01
+    filter_3d_scale: float = 0.2  # its strength s (the paper's 0.2)
+    eaa_max_nodes: int = RenderOptions.eaa_max_nodes  # node cap n_max: the speed/accuracy knob (1 = point value)
+    eaa_gamma: float = RenderOptions.eaa_gamma  # row growth of a sub-pixel splat with anisotropy
+    eaa_eta: float = RenderOptions.eaa_eta  # boundary emphasis b(d) = 1 + eta exp(-d / tau)
+    eaa_tau: float = RenderOptions.eaa_tau  # pixels
+    eaa_single_node_sigma: float = RenderOptions.eaa_single_node_sigma  # minor-axis std-dev (px) of 1 node
+    eaa_k_sigma: float = RenderOptions.k_sigma
+    near_plane: float = RenderOptions.near_plane  # metres
     # Tracking and mapping render a view from the Gaussians that reach its image enlarged by this fraction of
     # the larger side, at the pose the view starts from (0.25: about 16 degrees of a 70-degree view, far
     # beyond what one optimisation moves a pose); the rest of the map cannot be drawn and is left out.
     frustum_margin: float = 0.25
 
     def __post_init__(self):
-        _check(self.eaa_max_nodes >= 1, "render.eaa_max_nodes", "must be >= 1 (1 = point value)")
-        _check(self.eaa_gamma >= 0, "render.eaa_gamma", "must be >= 0")
-        _check(self.eaa_eta >= 0, "render.eaa_eta", "must be >= 0")
-        _check(self.eaa_tau > 0, "render.eaa_tau", "must be positive")
-        _check(self.eaa_single_node_sigma >= 0, "render.eaa_single_node_sigma", "must be >= 0 (px)")
-        _check(self.eaa_k_sigma > 0, "render.eaa_k_sigma", "must be positive")
+        keys = {option: key for key, option in RENDER_OPTION_KEYS.items()}
+        for option, message in render_option_problems(**self.renderer_options()):
+            _check(False, f"render.{keys[option]}", message)
         _check(self.filter_3d_scale > 0, "render.filter_3d_scale", "must be positive")
-        _check(self.near_plane > 0, "render.near_plane", "must be positive")
         _check(self.frustum_margin >= 0, "render.frustum_margin", "must be >= 0 (a fraction of the image size)")
+
+    def renderer_options(self) -> dict[str, Any]:
+        """The renderer options this section sets (keyword arguments of :func:`mipslam.render.rasterize`)."""
+        return {option: getattr(self, key) for key, option in RENDER_OPTION_KEYS.items()}
 
 
 @dataclass(frozen=True)
@@ -154,6 +175,7 @@ class TrackingConfig:
     convergence_threshold: float = 1e-5
     alpha_color: float = 0.5  # weight of the photometric term against depth
     coarse_to_fine: tuple[float, ...] = ()  # e.g. (0.5,) tracks at half resolution first
+    coarse_share: float = 0.5  # fraction of the iterations given to the coarse levels (split evenly between them)
     use_exposure: bool = False
     opacity_threshold: float = 0.95  # pixels whose rendered opacity is below are ignored
     gradient_mask_percentile: float = 0.0  # keep colour pixels above this image-gradient percentile (0-100)
@@ -162,6 +184,12 @@ class TrackingConfig:
     # A frame whose loss stays above ratio * running level is aligned to the previous frame by RGB-D
     # odometry and tracked again from there (a jump, a bump, dropped frames); 0 turns it off.
     relocalise_loss_ratio: float = 1.3
+    # Largest jump relocalisation accepts from the RGB-D alignment to the previous frame (a bump, dropped frames).
+    relocalise_max_m: float = 1.0
+    relocalise_max_deg: float = 45.0
+    # Momentum of the running level of good tracking losses (exponential moving average) that the failure and
+    # relocalisation ratios compare a frame's loss with.
+    running_loss_momentum: float = 0.9
     # Footprint mode of tracking's renders (null: render.mode); mapping always renders in render.mode. On a
     # 320x240 map EAA's row rule for sub-pixel splats made a pose-only render 3x as expensive as mip's, and
     # mip tracking kept the ATE within the seed spread; at 160x120 it cost 0.2-0.3 cm (docs/bench.md
@@ -180,6 +208,10 @@ class TrackingConfig:
         _check(self.failure_loss_ratio > 1, "tracking.failure_loss_ratio", "must be > 1")
         _check(self.relocalise_loss_ratio == 0 or self.relocalise_loss_ratio > 1, "tracking.relocalise_loss_ratio",
                "must be 0 (off) or > 1")
+        _check(0 <= self.coarse_share < 1, "tracking.coarse_share", "must be in [0, 1)")
+        _check(self.relocalise_max_m > 0 and self.relocalise_max_deg > 0, "tracking.relocalise_max_*",
+               "must be positive (metres, degrees)")
+        _check(0 <= self.running_loss_momentum < 1, "tracking.running_loss_momentum", "must be in [0, 1)")
 
 
 @dataclass(frozen=True)
@@ -189,9 +221,17 @@ class KeyframeConfig:
     rotation_deg: float = 15.0
     window_size: int = 8
     random_past: int = 2
+    # Covisibility (mipslam/keyframes.py): a point is seen by both frames when their depths agree within this
+    # fraction, evaluated on every covisibility_pixel_stride-th pixel in u and v.
+    covisibility_depth_tolerance: float = 0.1
+    covisibility_pixel_stride: int = 4
+    window_min_overlap: float = 0.05  # window keyframes seeing less of the new keyframe than this leave
 
     def __post_init__(self):
         _check(0 < self.covisibility_threshold <= 1, "keyframes.covisibility_threshold", "must be in (0, 1]")
+        _check(self.covisibility_depth_tolerance > 0, "keyframes.covisibility_depth_tolerance", "must be positive")
+        _check(self.covisibility_pixel_stride >= 1, "keyframes.covisibility_pixel_stride", "must be >= 1")
+        _check(0 <= self.window_min_overlap <= 1, "keyframes.window_min_overlap", "must be in [0, 1]")
         _check(self.window_size >= 1, "keyframes.window_size", "must be >= 1")
         _check(self.random_past >= 0, "keyframes.random_past", "must be >= 0")
 
@@ -257,22 +297,26 @@ class LoopConfig:
     """Loop closure and SA-PGO (docs/pgo.md): detection, verification, pose graph, map correction."""
 
     enabled: bool = True  # false: no loop stage at all (the run is exactly the one without it)
-    min_keyframe_gap: int = 10  # a loop candidate is at least this many keyframes older than the query
+    # a loop candidate is at least this many keyframes older than the query
+    min_keyframe_gap: int = CandidateOptions.min_gap
+    # verification method (RGB-D odometry: the most robust on the room scenes, docs/pgo.md)
     registration: Literal["rgbd_odometry", "point_to_plane", "colored"] = "rgbd_odometry"
-    icp_fitness_threshold: float = 0.3  # verification: fraction of points with a correspondence
-    icp_rmse_threshold: float = 0.05  # verification: inlier RMSE, metres
-    icp_voxel_m: float = 0.02  # finest voxel of ICP and of the fitness/RMSE checks (ICP starts at 2x)
-    icp_pixel_stride: int = 2  # every n-th pixel of each keyframe goes into the point clouds
+    icp_fitness_threshold: float = RegistrationOptions.fitness_threshold  # fraction of points with a correspondence
+    icp_rmse_threshold: float = RegistrationOptions.rmse_threshold  # verification: inlier RMSE, metres
+    # finest voxel of ICP and of the fitness/RMSE checks (ICP starts at 2x)
+    icp_voxel_m: float = RegistrationOptions.voxel_sizes[-1]
+    icp_pixel_stride: int = RegistrationOptions.pixel_stride  # every n-th pixel of each keyframe goes into the clouds
     # odometry edge (keyframe k-1 -> k) standard deviation: floor + drift_ratio * distance (rotation)
     # travelled since keyframe k-1, divided by sqrt(tracking quality), quality = running tracking
     # loss / this keyframe's loss, in [0.1, 1]
     odometry_sigma_m: float = 0.01
     odometry_sigma_deg: float = 0.5
     odometry_drift_ratio: float = 0.05
+    # SA-PGO's two switches (on here; PGOOptions' defaults are the plain full-LM baseline they are measured against)
     spectral_edge_weighting: bool = True
     low_frequency_correction: bool = True
-    num_eigenvectors: int = 16
-    full_iterations: int = 3
+    num_eigenvectors: int = PGOOptions.num_eigenvectors  # low-frequency basis size K
+    full_iterations: int = PGOOptions.full_iterations  # full LM iterations after the subspace stage
     # Mapping steps over the loop's keyframes right after the map moved with its anchors: Gaussians
     # that mapping had pulled towards drifted views do not move back with any anchor; this re-fits them.
     refine_iterations: int = 20

@@ -19,12 +19,15 @@ keyframe (nothing to map).
 Window: newest first; the newest ``keep_newest`` always stay, older ones leave when their
 overlap with the new keyframe falls below ``min_overlap`` and, beyond ``window_size``, the least
 overlapping (then the oldest) leave first (the MonoGS policy, with our covisibility).
+
+The functions above are pure. The stage's steps in the frame loop apply them to the
+:class:`~mipslam.state.SLAMState`: :func:`keyframe_decision` and :func:`insert_keyframe`.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Mapping, Sequence
+from typing import TYPE_CHECKING, Mapping, Sequence
 
 import torch
 
@@ -32,9 +35,14 @@ from mipslam.config import KeyframeConfig
 from mipslam.geometry.camera import project, unproject
 from mipslam.geometry.se3 import rotation_angle, se3_inverse, transform_points
 
-DEFAULT_DEPTH_TOLERANCE = 0.1  # relative depth agreement for covisibility
-DEFAULT_PIXEL_STRIDE = 4  # covisibility is evaluated on every 4th pixel in u and v
-DEFAULT_MIN_OVERLAP = 0.05  # window keyframes seeing less of the new keyframe than this leave
+if TYPE_CHECKING:
+    from mipslam.datasets import FrameCache
+    from mipslam.state import FrameRecord, SLAMState
+    from mipslam.types import Frame
+
+DEFAULT_DEPTH_TOLERANCE = KeyframeConfig.covisibility_depth_tolerance
+DEFAULT_PIXEL_STRIDE = KeyframeConfig.covisibility_pixel_stride
+DEFAULT_MIN_OVERLAP = KeyframeConfig.window_min_overlap
 
 
 def covisibility(
@@ -107,18 +115,18 @@ def decide_keyframe(
     last_keyframe_depth: torch.Tensor | None,  # [H2, W2] metres; None before the first keyframe
     last_keyframe_T_wc: torch.Tensor | None,  # [4, 4]
     last_keyframe_K: torch.Tensor | None = None,  # [3, 3]; default: same as K
-    *,
-    depth_tolerance: float = DEFAULT_DEPTH_TOLERANCE,
-    pixel_stride: int = DEFAULT_PIXEL_STRIDE,
 ) -> KeyframeDecision:
-    """Apply the keyframe rule of the module docstring."""
+    """Apply the keyframe rule of the module docstring (covisibility with ``config``'s tolerance and stride).
+
+    Poses are camera-to-world float64 (OpenCV camera); translations in metres, rotations in degrees."""
     median_current = median_valid_depth(depth)
     if last_keyframe_T_wc is None or last_keyframe_depth is None:
         has_depth = not math.isnan(median_current)
         return KeyframeDecision(has_depth, ("first",) if has_depth else ("no_valid_depth",), math.nan, 0.0, 0.0,
                                 0.0, median_current)
     covis = covisibility(depth, T_wc, K, last_keyframe_depth, last_keyframe_T_wc, last_keyframe_K,
-                         depth_tolerance=depth_tolerance, pixel_stride=pixel_stride)
+                         depth_tolerance=config.covisibility_depth_tolerance,
+                         pixel_stride=config.covisibility_pixel_stride)
     T_kc = se3_inverse(last_keyframe_T_wc.to(torch.float64)) @ T_wc.to(torch.float64)
     translation = float(T_kc[:3, 3].norm())
     rotation = math.degrees(float(rotation_angle(T_kc[:3, :3])))
@@ -183,10 +191,10 @@ def update_window(
 
 
 def update_window_from_config(window: Sequence[int], new_keyframe: int, overlap_with_new: Mapping[int, float],
-                              config: KeyframeConfig, *, min_overlap: float = DEFAULT_MIN_OVERLAP) -> WindowUpdate:
-    """:func:`update_window` with ``window_size`` from the config."""
+                              config: KeyframeConfig) -> WindowUpdate:
+    """:func:`update_window` with ``window_size`` and ``min_overlap`` from the config."""
     return update_window(window, new_keyframe, overlap_with_new, window_size=config.window_size,
-                         min_overlap=min_overlap)
+                         min_overlap=config.window_min_overlap)
 
 
 def select_random_past(
@@ -205,3 +213,36 @@ def select_random_past(
         return ()
     order = torch.randperm(len(pool), generator=generator, device=generator.device)
     return tuple(sorted(pool[int(i)] for i in order[:count]))
+
+
+# ----------------------------------------------------------------------------- the steps in the frame loop
+
+def keyframe_decision(config: KeyframeConfig, state: "SLAMState", frames: "FrameCache", frame: "Frame",
+                      T_wc: torch.Tensor) -> KeyframeDecision:
+    """Whether ``frame``, tracked at ``T_wc`` [4, 4] (camera-to-world), becomes a keyframe: the rule of the
+    module docstring against the last keyframe of ``state`` (the first one when there is none)."""
+    last = state.last_keyframe_id()
+    if last is None:
+        return decide_keyframe(config, frame.depth, T_wc, frame.intrinsics.matrix(), None, None, None)
+    record = state.keyframe_record(last)
+    keyframe = frames[record.index]
+    return decide_keyframe(config, frame.depth, T_wc, frame.intrinsics.matrix(), keyframe.depth, record.T_wc,
+                           keyframe.intrinsics.matrix())
+
+
+def insert_keyframe(config: KeyframeConfig, state: "SLAMState", frames: "FrameCache",
+                    record: "FrameRecord") -> tuple[int, ...]:
+    """Make ``record`` (the newest frame of ``state``) keyframe ``record.keyframe_id``: update the window by
+    covisibility with the new keyframe and draw ``random_past`` older keyframes with the run's generator.
+    Returns the keyframes to map over: the window (newest first), then the past ones (ascending)."""
+    state.keyframe_frames.append(len(state.frames) - 1)
+    frame = frames[record.index]
+    overlaps = {}
+    for kf in state.window:
+        other = state.keyframe_record(kf)
+        overlaps[kf] = covisibility(frame.depth, record.T_wc, frame.intrinsics.matrix(), frames[other.index].depth,
+                                    other.T_wc, depth_tolerance=config.covisibility_depth_tolerance,
+                                    pixel_stride=config.covisibility_pixel_stride)
+    state.window = list(update_window_from_config(state.window, record.keyframe_id, overlaps, config).window)
+    past = select_random_past(range(len(state.keyframe_frames)), state.window, config.random_past, state.generator)
+    return (*state.window, *past)

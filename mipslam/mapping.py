@@ -18,12 +18,18 @@ On each keyframe (DESIGN.md "Losses" and "Model only what a scene requires"):
 
 After the last frame, :meth:`Mapper.refine` takes ``final_iterations`` further steps of the same loss
 over all keyframes at fixed poses (the pipeline's final refinement).
+
+The stage's steps in the frame loop read and update the :class:`~mipslam.state.SLAMState`:
+:func:`map_keyframe` (a new keyframe), :func:`refine_after_correction` (after a loop correction) and
+:func:`refine_map` (after the last frame). Poses are camera-to-world ``T_wc`` [4, 4] float64 (OpenCV
+camera), images float32 on the map's device: colour [H, W, 3] in [0, 1], depth [H, W] metres (0 = none).
 """
 from __future__ import annotations
 
+import logging
 import math
-from dataclasses import dataclass
-from typing import Iterable
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Iterable
 
 import torch
 
@@ -39,12 +45,19 @@ from mipslam.gaussians import (
     gaussians_from_rgbd,
     prune_mask,
 )
+from mipslam.geometry import nearest_rigid
 from mipslam.geometry.se3 import se3_exp, se3_inverse
 from mipslam.losses.frequency import frequency_loss
 from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, rgbd_l1_loss, rgbd_masks
 from mipslam.losses.regularizers import isotropy_loss
 from mipslam.rendering import frustum_indices, render_view, view_sampling_rates
 from mipslam.types import Intrinsics
+
+if TYPE_CHECKING:
+    from mipslam.datasets import FrameCache
+    from mipslam.state import FrameRecord, SLAMState
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -86,7 +99,11 @@ class Mapper:
 
     @torch.no_grad()
     def densify(self, gmap: GaussianMap, optimizer: GaussianOptimizer, view: MappingView, frame_index: int) -> int:
-        """Add Gaussians where the map does not explain ``view``; returns how many were added."""
+        """Add Gaussians where the map does not explain ``view``; returns how many were added.
+
+        The map is rendered at ``view.T_wc`` [4, 4] (camera-to-world, OpenCV camera); a selected pixel (u, v) with
+        depth d metres becomes a Gaussian at ``T_wc K^-1 d (u, v, 1)`` (world, metres) with std-dev
+        ``initial_scale_factor * stride * d / f`` metres. ``frame_index`` is recorded as its creation frame."""
         cfg = self.config
         budget = cfg.max_gaussians - len(gmap)
         if budget <= 0:
@@ -115,7 +132,7 @@ class Mapper:
 
     @torch.no_grad()
     def observe_sampling_rates(self, gmap: GaussianMap, views: Iterable[MappingView]) -> None:
-        """Raise each Gaussian's ``max_sampling_rate`` to its rate in every view that trains it (the
+        """Raise each Gaussian's ``max_sampling_rate`` [N] (px/m) to its rate in every view that trains it (the
         Mip-Splatting 3D filter's training cameras). :meth:`map_keyframe` calls it when ``render.filter_3d``
         is on; otherwise each Gaussian keeps the rate of the view that created it."""
         for view in views:
@@ -124,7 +141,9 @@ class Mapper:
 
     @torch.no_grad()
     def prune(self, gmap: GaussianMap, optimizer: GaussianOptimizer, view: MappingView) -> int:
-        """Remove negligible, non-finite or absurdly large Gaussians and enforce the count cap."""
+        """Remove negligible, non-finite or absurdly large Gaussians and enforce the count cap; returns how many.
+
+        Sizes are judged in pixels as seen from ``view.T_wc`` [4, 4] (std-dev metres x focal px / distance m)."""
         if len(gmap) == 0:
             return 0
         g = gmap.activated()
@@ -139,7 +158,8 @@ class Mapper:
 
     def view_loss(self, gmap: GaussianMap, view: MappingView, T_cw: torch.Tensor,
                   masks: RGBDMasks | None = None, rows: torch.Tensor | None = None) -> torch.Tensor:
-        """The mapping loss of one view (module docstring), differentiable w.r.t. the map and ``T_cw``.
+        """The mapping loss of one view (module docstring), differentiable w.r.t. the map and ``T_cw`` [4, 4]
+        (world-to-camera, the map's dtype and device). Returns a scalar tensor.
 
         What :meth:`optimize` computes once per view and passes in: ``masks``, the view's
         :func:`rgbd_masks` (they depend on the targets alone), and ``rows`` [M] int64, the Gaussians
@@ -162,7 +182,11 @@ class Mapper:
 
     def optimize(self, gmap: GaussianMap, optimizer: GaussianOptimizer, views: list[MappingView], iterations: int,
                  generator: torch.Generator) -> tuple[float, float, tuple[tuple[int, torch.Tensor], ...]]:
-        """Adam steps over ``views`` (newest first); returns (first loss, last loss, refined poses)."""
+        """Adam steps over ``views`` (newest first); returns (first loss, last loss, refined poses).
+
+        Step i uses ``views[0]`` on even steps and a view drawn with ``generator`` from the others on odd ones.
+        A view with ``optimize_pose`` gets a left increment ``T_cw = exp(xi) T_cw0`` (xi [6] = [rho m, phi rad],
+        camera frame); refined poses come back as (keyframe id, T_wc [4, 4] float64 on CPU)."""
         device, dtype = gmap.device, gmap.dtype
         T_cw_init = [se3_inverse(v.T_wc).to(device=device, dtype=dtype) for v in views]
         pose_deltas = {i: torch.zeros(6, device=device, dtype=dtype, requires_grad=True)
@@ -227,10 +251,71 @@ class Mapper:
 
     def map_keyframe(self, gmap: GaussianMap, optimizer: GaussianOptimizer, views: list[MappingView], *,
                      iterations: int, generator: torch.Generator, frame_index: int) -> MappingResult:
-        """Densify at the newest view (``views[0]``), optimise over all views, prune."""
+        """Densify at the newest view (``views[0]``), optimise over all views for ``iterations`` steps, prune.
+        Views carry images on the map's device (colour [H, W, 3], depth [H, W] metres) and T_wc [4, 4] float64."""
         added = self.densify(gmap, optimizer, views[0], frame_index)
         if self.render_config.filter_3d:  # 3-4 % of a balanced keyframe's mapping: only when it is used
             self.observe_sampling_rates(gmap, views)
         first, last, refined = self.optimize(gmap, optimizer, views, iterations, generator)
         pruned = self.prune(gmap, optimizer, views[0])
         return MappingResult(added, pruned, iterations, first, last, refined)
+
+
+# ----------------------------------------------------------------------------- the steps in the frame loop
+
+def mapping_view(state: "SLAMState", frames: "FrameCache", keyframe_id: int) -> MappingView:
+    """Keyframe ``keyframe_id`` as mapping sees it: its image, its current pose and its exposure (keyframe 0's
+    pose stays fixed: it fixes the gauge)."""
+    record = state.keyframe_record(keyframe_id)
+    frame = frames[record.index]
+    return MappingView(keyframe_id, frame.color, frame.depth, record.T_wc, record.exposure.to(frame.color.device),
+                       frame.intrinsics, optimize_pose=keyframe_id != 0)
+
+
+def map_keyframe(mapper: Mapper, state: "SLAMState", frames: "FrameCache", record: "FrameRecord",
+                 keyframe_ids: tuple[int, ...]) -> MappingResult:
+    """Map the new keyframe ``record`` over the keyframes ``keyframe_ids`` (the window, newest first, then the
+    random past ones; :func:`mipslam.keyframes.insert_keyframe`), and take the refined poses (projected onto
+    SE(3)) into ``state``. ``mapping.first_frame_iterations`` steps on the first keyframe, ``iterations`` after."""
+    views = [mapping_view(state, frames, kf) for kf in keyframe_ids]
+    cfg = mapper.config
+    iterations = cfg.first_frame_iterations if record.keyframe_id == 0 else cfg.iterations
+    result = mapper.map_keyframe(state.gaussian_map, state.optimizer, views, iterations=iterations,
+                                 generator=state.generator, frame_index=record.index)
+    for keyframe_id, T_wc in result.refined_T_wc:
+        state.set_keyframe_pose(keyframe_id, nearest_rigid(T_wc))
+    return result
+
+
+def refine_after_correction(mapper: Mapper, state: "SLAMState", frames: "FrameCache", keyframe_ids: list[int],
+                            iterations: int) -> int:
+    """``iterations`` mapping steps over ``keyframe_ids`` at their corrected poses (held fixed); returns the steps.
+
+    Moving Gaussians with their anchors cannot undo what mapping did before a loop correction: old
+    Gaussians re-fitted from drifted views sit where those views put them. A few steps of the mapping loss
+    over the loop's keyframes (no densification, no pose updates, so the pose-graph solution stands)
+    reconcile the map with the corrected poses.
+    """
+    if iterations == 0 or len(state.gaussian_map) == 0:
+        return 0
+    views = [replace(mapping_view(state, frames, k), optimize_pose=False) for k in keyframe_ids]
+    mapper.optimize(state.gaussian_map, state.optimizer, views, iterations, state.generator)
+    return iterations
+
+
+def refine_map(mapper: Mapper, state: "SLAMState", frames: "FrameCache") -> int:
+    """The final refinement: ``mapping.final_iterations`` mapping steps after the last frame, one keyframe per
+    step, every keyframe once per pass in an order drawn from the run's generator; poses fixed. Returns the
+    steps taken (fewer if a loss turned non-finite; the map then keeps its last finite state)."""
+    iterations, count = mapper.config.final_iterations, len(state.keyframe_frames)
+    if iterations == 0 or count == 0:
+        return 0
+    passes = -(-iterations // count)
+    order = torch.cat([torch.randperm(count, generator=state.generator) for _ in range(passes)])[:iterations]
+    views = (mapping_view(state, frames, int(k)) for k in order)  # Mapper.refine never moves a pose
+    losses = mapper.refine(state.gaussian_map, state.optimizer, views)
+    if losses:
+        n = min(count, len(losses))
+        log.info("final refinement: %d steps over %d keyframes; mean mapping loss %.4f over the first %d steps, "
+                 "%.4f over the last %d", len(losses), count, sum(losses[:n]) / n, n, sum(losses[-n:]) / n, n)
+    return len(losses)

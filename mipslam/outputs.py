@@ -3,7 +3,6 @@ record, map, timings, loop closures and a description of the run. Every file is 
 from __future__ import annotations
 
 import math
-import statistics
 
 import numpy as np
 import torch
@@ -25,7 +24,9 @@ def _finite_or_none(value: float) -> float | None:
     return value if math.isfinite(value) else None
 
 
-def write_run_outputs(folder: RunFolder, state: SLAMState, sequence: RGBDSequence, config: Config) -> None:
+def write_run_outputs(folder: RunFolder, state: SLAMState, sequence: RGBDSequence, config: Config,
+                      timings: dict) -> None:
+    """Every output file of the run folder; ``timings`` is timings.json (:meth:`mipslam.observer.Observer.timing_summary`)."""
     frames = state.frames
     timestamps = np.array([f.timestamp for f in frames], dtype=np.float64)
     write_tum_trajectory(folder.traj_est, timestamps, state.poses())
@@ -49,7 +50,7 @@ def write_run_outputs(folder: RunFolder, state: SLAMState, sequence: RGBDSequenc
         ],
     })
     write_map_ply(folder.map_ply, state.gaussian_map)
-    write_json_atomic(folder.timings, timing_summary(state))
+    write_json_atomic(folder.timings, timings)
     write_json_atomic(folder.loops, loop_summary(state, config))
     intrinsics = sequence.intrinsics
     write_json_atomic(folder.root / RUN_INFO, {
@@ -96,8 +97,9 @@ def loop_summary(state: SLAMState, config: Config) -> dict:
             "optimisations": "per keyframe that added loop edges disagreeing with the current poses (edges within "
                              "loop.consistent_chi2 or loop.min_correction_m/_deg join the graph without one): graph "
                              "size, cost before/after (robust, on the edges kept), LM iterations, pruned loop edges [i, j], final weight and chi2 of its new and pruned "
-                             "loop edges, whether the correction was applied and why, largest keyframe correction, map "
-                             "PSNR at the loop's keyframes before the correction, with only the poses corrected, after "
+                             "loop edges, whether the correction was applied and why, largest keyframe correction, Gaussians "
+                             "moved, refinement steps, with run.diagnostics the map PSNR at the loop's keyframes "
+                             "before the correction, with only the poses corrected, after "
                              "the Gaussians moved with their anchors and after the refinement steps (dB), seconds",
         },
         "summary": {
@@ -136,24 +138,3 @@ def loop_list(state: SLAMState) -> list[dict]:
         rows.append({"keyframe_i": pair[0], "keyframe_j": pair[1], "frame_i": c["candidate_frame"],
                      "frame_j": c["query_frame"], "accepted": pair in in_graph, "status": status})
     return rows
-
-
-def timing_summary(state: SLAMState) -> dict:
-    """Per stage: total seconds, median and mean milliseconds per frame, and the per-frame list."""
-    stages = {}
-    for stage, values in state.timings.items():
-        stages[stage] = {
-            "total_s": sum(values),
-            "median_ms": 1000 * statistics.median(values) if values else 0.0,
-            "mean_ms": 1000 * statistics.fmean(values) if values else 0.0,
-            "per_frame_s": values,
-        }
-    total = sum(sum(v) for v in state.timings.values())
-    frames = len(state.frames)
-    return {
-        "frames": frames,
-        "total_s": total,
-        "frames_per_second": frames / total if total > 0 else None,
-        "note": "seconds of each stage per frame, summed over all sessions of the run (resume included)",
-        "stages": stages,
-    }

@@ -18,16 +18,7 @@ from mipslam.types import Intrinsics
 
 def render_options(config: RenderConfig) -> dict:
     """Keyword options of :func:`mipslam.render.rasterize` for a render config."""
-    return {
-        "near_plane": config.near_plane,
-        "k_sigma": config.eaa_k_sigma,
-        "eaa_max_nodes": config.eaa_max_nodes,
-        "eaa_gamma": config.eaa_gamma,
-        "eaa_eta": config.eaa_eta,
-        "eaa_tau": config.eaa_tau,
-        "eaa_single_node_sigma": config.eaa_single_node_sigma,
-        "filter_3d_scale": config.filter_3d_scale if config.filter_3d else None,
-    }
+    return {**config.renderer_options(), "filter_3d_scale": config.filter_3d_scale if config.filter_3d else None}
 
 
 def render_view(

@@ -2,16 +2,17 @@
 
 Per processed frame a frozen :class:`FrameRecord`; the keyframes (id -> frame position), the
 window, the map with its optimizer state, the run's random generator, the running tracking loss,
-per-stage timings, the Gaussian count over time, and the loop-closure state (pose graph and
-keyframe descriptors, :class:`~mipslam.loop.closer.LoopState`) with its log of candidates and
-optimisations. :meth:`SLAMState.to_checkpoint` gives plain
-tensors plus JSON metadata (no pickled objects); :meth:`SLAMState.from_checkpoint` is its inverse.
+the Gaussian count over time, and the loop-closure state (pose graph and keyframe descriptors,
+:class:`~mipslam.loop.closer.LoopState`) with its log of candidates and optimisations.
+:meth:`SLAMState.to_checkpoint` gives plain tensors plus JSON metadata (no pickled objects);
+:meth:`SLAMState.from_checkpoint` is its inverse. Stage timings are outputs, not state
+(:class:`~mipslam.observer.Observer`); the checkpoint carries them beside the state.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -20,6 +21,9 @@ from mipslam.config import MappingConfig
 from mipslam.gaussians import GaussianMap, GaussianOptimizer
 from mipslam.geometry import se3_inverse
 from mipslam.loop.closer import LoopState
+
+if TYPE_CHECKING:
+    from mipslam.tracking import TrackingResult
 
 STATE_VERSION = 2  # 2: loop-closure state (pose graph, descriptors, loop log)
 
@@ -60,7 +64,6 @@ class SLAMState:
     keyframe_frames: list[int] = field(default_factory=list)  # keyframe id -> position in ``frames``
     window: list[int] = field(default_factory=list)  # keyframe ids, newest first
     running_loss: float | None = None
-    timings: dict[str, list[float]] = field(default_factory=dict)  # stage -> seconds per frame
     gaussian_counts: list[int] = field(default_factory=list)
     loop: LoopState = field(default_factory=LoopState.empty)
     loop_log: dict[str, list[dict[str, Any]]] = field(default_factory=lambda: {"candidates": [], "optimisations": []})
@@ -94,6 +97,7 @@ class SLAMState:
     # ------------------------------------------------------------------ updates
 
     def set_keyframe_pose(self, keyframe_id: int, T_wc: torch.Tensor) -> None:
+        """Keyframe ``keyframe_id`` takes pose ``T_wc`` [4, 4] (camera-to-world; stored float64 on CPU)."""
         position = self.keyframe_frames[keyframe_id]
         self.frames[position] = replace(self.frames[position], T_wc=T_wc.to(torch.float64).cpu())
 
@@ -127,16 +131,23 @@ class SLAMState:
             self.frames[position] = replace(record, T_wc=T)
         return self.gaussian_map.transform_by_anchor(corrections)
 
-    def add_timing(self, stage: str, seconds: float) -> None:
-        self.timings.setdefault(stage, []).append(float(seconds))
+    def append_frame(self, index: int, timestamp: float, tracked: "TrackingResult", is_keyframe: bool) -> FrameRecord:
+        """Record a tracked frame (sequence ``index``, ``timestamp`` in seconds); a keyframe takes the next
+        keyframe id, every frame the last keyframe as its reference. Returns the record."""
+        last = self.last_keyframe_id()
+        record = FrameRecord(index, timestamp, tracked.T_wc, tracked.exposure, tracked.status, tracked.loss,
+                             tracked.iterations, len(self.keyframe_frames) if is_keyframe else -1,
+                             last if last is not None else -1, T_wc_tracked=tracked.T_wc)
+        self.frames.append(record)
+        return record
 
-    def add_timing_to_last_frame(self, stage: str, seconds: float) -> None:
-        """Charge a stage that runs once after the frames (the final refinement) to the last frame, with zeros
-        before it, so every stage's list stays one entry per frame."""
-        values = self.timings.setdefault(stage, [])
-        values.extend([0.0] * (len(self.frames) - len(values)))
-        if values:
-            values[-1] += float(seconds)
+    def end_frame(self, tracked: "TrackingResult", running_loss_momentum: float) -> FrameRecord:
+        """After all stages: a well-tracked frame updates the running tracking loss
+        (:func:`update_running_loss`), and the map's size is recorded. Returns the frame's record."""
+        if tracked.status == "ok":
+            self.running_loss = update_running_loss(self.running_loss, tracked.loss, running_loss_momentum)
+        self.gaussian_counts.append(len(self.gaussian_map))
+        return self.frames[-1]
 
     # ------------------------------------------------------------------ checkpoint
 
@@ -166,7 +177,6 @@ class SLAMState:
             "next_frame": self.next_frame,
             "statuses": [f.status for f in frames],
             "running_loss": self.running_loss,
-            "timings": self.timings,
             "gaussian_counts": self.gaussian_counts,
             "rng": rng_meta,
             "loop_log": self.loop_log,
@@ -211,7 +221,6 @@ class SLAMState:
             keyframe_frames=[int(v) for v in tensors["keyframe_frames"].tolist()],
             window=[int(v) for v in tensors["window"].tolist()],
             running_loss=None if running is None else float(running),
-            timings={k: list(map(float, v)) for k, v in metadata["timings"].items()},
             gaussian_counts=[int(v) for v in metadata["gaussian_counts"]],
             loop=LoopState.from_state_dict(select_prefix("loop", tensors)),
             loop_log={"candidates": list(metadata["loop_log"]["candidates"]),
@@ -219,8 +228,9 @@ class SLAMState:
         )
 
 
-def update_running_loss(previous: float | None, loss: float, momentum: float = 0.9) -> float:
-    """Exponential moving average of good tracking losses (the level a loss jump is measured against)."""
+def update_running_loss(previous: float | None, loss: float, momentum: float) -> float:
+    """Exponential moving average of good tracking losses (the level a loss jump is measured against):
+    ``momentum * previous + (1 - momentum) * loss`` (``tracking.running_loss_momentum``)."""
     if previous is None or not math.isfinite(previous):
         return loss
     return momentum * previous + (1 - momentum) * loss

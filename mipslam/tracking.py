@@ -12,24 +12,34 @@ view from the motion-model pose (:func:`~mipslam.rendering.frustum_indices`, ``r
 
 Failure (non-finite loss, too few valid pixels, loss far above its running level) keeps the
 motion-model pose and is reported, never raised: the pipeline flags the frame and skips mapping.
+
+:func:`track_frame` is the stage's step in the frame loop: the motion-model prediction, tracking,
+relocalisation when the loss stays high (:func:`relocalise`), and the projection of the result onto SE(3).
 """
 from __future__ import annotations
 
+import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import torch
 
 from mipslam.config import RenderConfig, TrackingConfig
-from mipslam.evaluation.image_metrics import resize_area
+from mipslam.errors import MipslamError
 from mipslam.gaussians import ActivatedGaussians
+from mipslam.geometry import nearest_rigid, resize_area
 from mipslam.geometry.se3 import se3_exp, se3_inverse
 from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, image_gradient_mask, rgbd_l1_loss, rgbd_masks
+from mipslam.loop.registration import RegistrationOptions, register_rgbd_odometry
 from mipslam.rendering import frustum_subset, render_view
 from mipslam.types import Frame, Intrinsics
 
-# Fraction of the iteration budget given to the coarse levels (split evenly between them).
-_COARSE_SHARE = 0.5
+if TYPE_CHECKING:
+    from mipslam.datasets import FrameCache
+    from mipslam.state import SLAMState
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -88,7 +98,7 @@ class Tracker:
     def _levels(self, frame: Frame) -> list[_Level]:
         cfg = self.config
         scales = [s for s in cfg.coarse_to_fine if s < 1.0] + [1.0]
-        coarse_total = int(round(cfg.iterations * _COARSE_SHARE)) if len(scales) > 1 else 0
+        coarse_total = int(round(cfg.iterations * cfg.coarse_share)) if len(scales) > 1 else 0
         per_coarse = coarse_total // max(1, len(scales) - 1)
         levels = []
         for scale in scales:
@@ -118,9 +128,10 @@ class Tracker:
         self,
         gaussians: ActivatedGaussians,  # the frozen map (detached)
         frame: Frame,  # on the map's device
-        T_wc_init: torch.Tensor,  # [4, 4] float64 motion-model prediction
+        T_wc_init: torch.Tensor,  # [4, 4] float64 motion-model prediction, camera-to-world
         running_loss: float | None,  # typical loss of recent good frames (None: not known yet)
     ) -> TrackingResult:
+        """Optimise the pose of ``frame`` from ``T_wc_init`` against the frozen map (module docstring)."""
         cfg = self.config
         device, dtype = gaussians.means.device, gaussians.means.dtype
         # Pose algebra in float64 (a float32 product is orthonormal only to ~1e-7, and the motion model
@@ -213,5 +224,67 @@ def _converged(optimizer: torch.optim.Optimizer, pose_params: list[torch.Tensor]
 
 
 def initial_result(T_wc: torch.Tensor) -> TrackingResult:
-    """The first frame defines the map's frame: nothing to track against."""
+    """The first frame defines the map's frame: nothing to track against.  T_wc [4, 4] camera-to-world -> the
+    result at that pose (float64 on CPU), status "initial"."""
     return TrackingResult(T_wc.to(torch.float64).cpu().clone(), torch.zeros(2), 0.0, 0, 1.0, True, "initial")
+
+
+# ----------------------------------------------------------------------------- the step in the frame loop
+
+def track_frame(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "FrameCache",
+                T_wc_first: torch.Tensor) -> TrackingResult:
+    """Track ``frame`` against the frozen map of ``state``; the first frame (or any frame while the map is
+    empty) takes its pose from ``T_wc_first`` [4, 4] float64 or the motion model without tracking.
+
+    ``frames[index]`` is an earlier frame (relocalisation aligns to the previous one). The result's
+    ``T_wc`` [4, 4] float64 (camera-to-world) is projected onto SE(3) (:func:`~mipslam.geometry.nearest_rigid`).
+    """
+    previous = state.frames[-2:]
+    if not previous:
+        return initial_result(T_wc_first)
+    prediction = constant_velocity_prediction(previous[-1].T_wc, previous[-1].T_wc_tracked,
+                                              previous[-2].T_wc_tracked if len(previous) == 2 else None)
+    if len(state.gaussian_map) == 0:
+        return initial_result(prediction)
+    detached = state.gaussian_map.activated().detached()
+    result = tracker.track(detached, frame, prediction, state.running_loss)
+    result = relocalise(tracker, state, frame, frames, detached, result)
+    return replace(result, T_wc=nearest_rigid(result.T_wc))
+
+
+def relocalise(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "FrameCache",
+               gaussians: ActivatedGaussians, result: TrackingResult) -> TrackingResult:
+    """Re-track a frame from a pose found by RGB-D alignment to the previous frame; returns the better result.
+
+    Runs when the tracking loss stays above ``tracking.relocalise_loss_ratio`` times its running level
+    (the camera jumped, was bumped, or frames were dropped: the motion model started tracking far from
+    the truth and its small steps could not get there); the lower loss wins. Ratio 0 turns it off. The
+    alignment is dense RGB-D odometry (Open3D's coarse-to-fine hybrid term, as loop verification uses),
+    accepted up to ``tracking.relocalise_max_m`` / ``relocalise_max_deg`` from the tracked pose.
+    """
+    cfg = tracker.config
+    running = state.running_loss
+    ratio = cfg.relocalise_loss_ratio
+    if (ratio <= 0 or running is None or result.status not in ("ok", "loss_jump") or not state.frames
+            or result.loss <= ratio * running or not state.frames[-1].tracked):
+        return result
+    previous = state.frames[-1]
+    before = frames[previous.index]
+    T_wc_prev = previous.T_wc.to(torch.float64)
+    options = RegistrationOptions(method="rgbd_odometry", pixel_stride=1, min_points=100,
+                                  max_correction_m=cfg.relocalise_max_m, max_correction_deg=cfg.relocalise_max_deg)
+    try:
+        aligned = register_rgbd_odometry(before.color, before.depth, frame.color, frame.depth, frame.intrinsics,
+                                         se3_inverse(T_wc_prev) @ result.T_wc.to(torch.float64), options)
+    except MipslamError as exc:  # Open3D unavailable: keep tracking's result
+        log.debug("relocalisation skipped: %s", exc)
+        return result
+    if not aligned.accepted:
+        return result
+    retry = tracker.track(gaussians, frame, T_wc_prev @ aligned.T_ij, running)
+    if retry.ok and (not result.ok or retry.loss < result.loss):
+        log.info("frame %d: relocalised (tracking loss %.4f, %.1fx its running level; %.4f after a %.2f m, %.1f deg "
+                 "RGB-D alignment to frame %d)", frame.index, result.loss, result.loss / running, retry.loss,
+                 aligned.correction_m, aligned.correction_deg, previous.index)
+        return retry
+    return result

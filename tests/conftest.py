@@ -31,3 +31,26 @@ def tum_fr1_xyz_path() -> Path:
 @pytest.fixture
 def tum_trajectories_path() -> Path:
     return shared_data_path("tum_trajectories")
+
+
+@pytest.fixture(scope="module")
+def tiny_sequence(tmp_path_factory) -> Path:
+    """A 6-frame 40x30 data_synth loop (Replica layout)."""
+    import data_synth
+
+    out = tmp_path_factory.mktemp("synth") / "seq"
+    data_synth.generate(out, layout="replica", trajectory="loop", width=40, height=30, frames=6, seed=0, supersample=2)
+    return out
+
+
+@pytest.fixture(scope="module")
+def one_frame_map(tmp_path_factory):
+    """(sequence folder, config, sequence, frozen map of frame 0) on a 2-frame 64x48 loop: at 40x30 the map
+    of one frame is too coarse to pin the pose to a few millimetres."""
+    import data_synth
+    from tiny_runs import map_of_first_frame
+
+    seq = tmp_path_factory.mktemp("track") / "seq"
+    data_synth.generate(seq, layout="replica", trajectory="loop", width=64, height=48, frames=2, seed=0, supersample=2)
+    config, sequence, gmap, _, _ = map_of_first_frame(seq, 60)
+    return seq, config, sequence, gmap.activated().detached()

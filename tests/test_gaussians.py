@@ -6,6 +6,7 @@ import torch
 
 from mipslam.errors import MipslamError
 from mipslam.gaussians import (
+    ActivatedGaussians,
     GaussianMap,
     GaussianOptimizer,
     GaussianParameters,
@@ -317,3 +318,16 @@ def test_far_from_existing_keeps_only_gaussians_with_no_centre_within_ratio_sigm
     assert far_from_existing(new, sigmas, existing, 0.0).all()  # off
     assert far_from_existing(new, sigmas, existing[:0], 2.0).all()  # empty map
     assert far_from_existing(new[:0], sigmas[:0], existing, 2.0).shape == (0,)
+
+
+def test_detached_gaussians_keep_their_rates_and_leave_the_graph_and_rows_select_every_field():
+    leaf = torch.ones(2, 3, requires_grad=True)
+    gaussians = ActivatedGaussians(leaf * 1.0, torch.tensor([[1.0, 0, 0, 0]] * 2), leaf * 0.1, leaf[:, 0] * 0.5,
+                                   leaf * 0.2, max_sampling_rate=torch.tensor([10.0, 0.0]))
+    frozen = gaussians.detached()
+    assert not any(t.requires_grad for t in (frozen.means, frozen.scales, frozen.opacities, frozen.colors))
+    assert frozen.max_sampling_rate.tolist() == [10.0, 0.0]
+    second = frozen.rows(torch.tensor([1]))
+    assert len(second) == 1 and second.max_sampling_rate.tolist() == [0.0]
+    assert torch.equal(second.opacities, frozen.opacities[1:]) and torch.equal(second.colors, frozen.colors[1:])
+    assert ActivatedGaussians(*(t.detach() for t in (leaf, leaf, leaf, leaf[:, 0], leaf))).detached().max_sampling_rate is None

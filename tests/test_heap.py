@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 import mipslam.pipeline as pipeline
+import mipslam.run_control as run_control
 from mipslam.config import load_config
 from mipslam.errors import ConfigError
 from mipslam.heap import heap_trim_available, release_free_heap, set_mmap_threshold
@@ -92,7 +93,7 @@ def test_pipeline_releases_memory_every_n_frames(monkeypatch, tmp_path):
     data_synth.generate(sequence, layout="replica", trajectory="loop", width=24, height=18, frames=5, seed=0,
                         supersample=1)
     calls = []
-    monkeypatch.setattr(pipeline, "release_free_heap", lambda: calls.append(1) or True)
+    monkeypatch.setattr(run_control, "release_free_heap", lambda: calls.append(1) or True)
     config = load_config(REPO / "configs" / "synthetic.yaml", overrides=[
         f"dataset.path={sequence}", "run.release_memory_every=2", "run.threads=1", "tracking.iterations=3",
         "mapping.iterations=2", "mapping.first_frame_iterations=3", "run.evaluate_at_end=false"])

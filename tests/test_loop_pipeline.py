@@ -1,6 +1,6 @@
 """Loop closure and SA-PGO inside the SLAM loop, on tiny data_synth loop sequences.
 
-Drift is injected with a biased odometer (mipslam.loop.faults.BiasedOdometer): every frame's pose is
+Drift is injected with a biased odometer (fault_injection.BiasedOdometer (tests/fault_injection.py)): every frame's pose is
 the previous estimate times the ground-truth motion times Exp(bias), so the run drifts by about
 0.6 deg and 4 mm per frame; mapping, keyframes and loop closure run as usual on those poses. The
 sequence is a 48-frame `loop` trajectory (a small circle that returns to its start) at 40x30.
@@ -27,7 +27,8 @@ from mipslam.geometry import se3_exp, se3_inverse, se3_log
 from mipslam.io.ply import read_map_ply
 from mipslam.io.tum import read_tum_trajectory
 from mipslam.loop.closer import LoopState
-from mipslam.loop.faults import BiasedOdometer, WrongLoop
+from fault_injection import BiasedOdometer, WrongLoop
+from mipslam.observer import Observer
 from mipslam.pipeline import PipelineHooks, run_slam
 from mipslam.rendering import render_view
 from mipslam.state import FrameRecord, SLAMState
@@ -61,10 +62,11 @@ def drift_config(sequence: Path, *extra: str):
     return load_config(REPO / "configs" / "synthetic.yaml", overrides=[f"dataset.path={sequence}", *TINY, *DRIFT, *extra])
 
 
-def drift_run(sequence: Path, run_dir: Path, *extra: str, wrong: WrongLoop | None = None, resume: bool = False):
+def drift_run(sequence: Path, run_dir: Path, *extra: str, wrong: WrongLoop | None = None, resume: bool = False,
+              diagnostics: bool = False):
     config = drift_config(sequence, *extra)
     odometer = BiasedOdometer(make_sequence(config.dataset).gt_T_wc, BIAS)
-    return run_slam(config, run_dir, resume=resume, evaluate=False,
+    return run_slam(config, run_dir, resume=resume, evaluate=False, observer=Observer(diagnostics=diagnostics),
                     hooks=PipelineHooks(after_tracking=odometer, loop_verification=wrong))
 
 
@@ -82,7 +84,7 @@ def loops(run_dir: Path) -> dict:
 def drift_runs(drift_sequence, tmp_path_factory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("loopruns")
     drift_run(drift_sequence, root / "off", "loop.enabled=false")
-    drift_run(drift_sequence, root / "on")
+    drift_run(drift_sequence, root / "on", diagnostics=True)  # the map's PSNR around each correction in loops.json
     return {"off": root / "off", "on": root / "on", "root": root}
 
 
@@ -317,6 +319,11 @@ def test_resume_across_a_loop_closure_equals_the_uninterrupted_run(drift_sequenc
 
     assert decisions(loops(split)) == decisions(loops(full))
     assert len(decisions(loops(full))) >= 2
+    # The full run measured the map's PSNR around each correction (diagnostics), the split run did not (the
+    # default): the results above are the same, so the diagnostics changed nothing.
+    applied = [o for o in loops(split)["optimisations"] if o["applied"]]
+    assert applied and all("psnr_after_db" not in o and o["gaussians_moved"] > 0 for o in applied)
+    assert all("psnr_after_db" in o for o in loops(full)["optimisations"] if o["applied"])
 
 
 def test_resume_is_bit_identical_where_small_splats_amplify_round_off(drift_sequence, tmp_path):

@@ -17,7 +17,7 @@ from mipslam.loop.spectral import (
     scale_information,
     spectral_coherence_weights,
 )
-from mipslam.loop.synthetic import make_synthetic_pose_graph, trajectory_errors
+from synthetic_pose_graphs import make_synthetic_pose_graph, trajectory_errors
 
 F64 = torch.float64
 

@@ -18,7 +18,7 @@ from mipslam.loop.pose_graph import (
     se3_right_jacobian_inverse,
 )
 from mipslam.loop.solver import PGOOptions, optimize_pose_graph, optimize_pose_graph_window
-from mipslam.loop.synthetic import circle_trajectory, make_synthetic_pose_graph, trajectory_errors
+from synthetic_pose_graphs import circle_trajectory, make_synthetic_pose_graph, trajectory_errors
 
 F64 = torch.float64
 PLAIN = PGOOptions()

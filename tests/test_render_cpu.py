@@ -15,9 +15,10 @@ import pytest
 import torch
 
 from mipslam.errors import BackendUnavailableError
-from mipslam.render import MODES, rasterize
+from mipslam.render import rasterize
 from mipslam.render import cpu as cpu_backend
 from mipslam.geometry.se3 import se3_exp
+from test_render_extremes import extreme_scene
 
 
 @pytest.fixture(scope="module")
@@ -181,75 +182,7 @@ def test_pose_only_gives_the_same_pose_gradient(ext, mode):
     assert cosine(grads_pose[5], grads_torch[5]) >= 0.999
 
 
-# --- numerical extremes ----------------------------------------------------------------------------
-NAN, INF = float("nan"), float("inf")
-
-
-def extreme_scene():
-    rows = [  # mean xyz, quat wxyz, scales xyz, opacity
-        ((0.0, 0.0, 2.0), (1, 0, 0, 0), (0.05, 0.05, 0.05), 0.7),
-        ((0.1, -0.1, 3.0), (0.9, 0.1, 0.2, 0.3), (0.2, 0.01, 0.1), 0.5),
-        ((0.0, 0.0, -1.0), (1, 0, 0, 0), (0.1, 0.1, 0.1), 0.9),  # behind the camera
-        ((0.0, 0.0, 0.01), (1, 0, 0, 0), (0.1, 0.1, 0.1), 0.9),  # on the near plane
-        ((0.0, 0.0, 1e-6), (1, 0, 0, 0), (0.1, 0.1, 0.1), 0.9),  # depth 1e-6
-        ((1e5, 0.0, 1e6), (1, 0, 0, 0), (1.0, 1.0, 1.0), 0.9),  # depth 1e6
-        ((0.0, 0.1, 1.0), (1, 0, 0, 0), (1e-8, 1e-8, 1e-8), 1.0),  # scale 1e-8
-        ((0.0, 0.0, 5.0), (1, 0, 0, 0), (1e3, 1e3, 1e3), 0.3),  # scale 1e3
-        ((0.05, 0.0, 2.0), (0.8, 0.3, -0.2, 0.4), (1e-3, 1e3, 1.0), 0.6),  # anisotropy 1e6
-        ((0.02, 0.02, 2.0), (0.7, 0.1, 0.7, 0.1), (1e-6, 1.0, 0.1), 0.8),  # anisotropy 1e6
-        ((-0.1, 0.05, 2.0), (1, 0, 0, 0), (0.05, 0.05, 0.05), 0.0),  # opacity 0
-        ((0.1, 0.05, 2.5), (1, 0, 0, 0), (0.05, 0.05, 0.05), 1.0),  # opacity 1
-        ((0.0, 0.0, 2.0), (0, 0, 0, 0), (0.05, 0.05, 0.05), 0.9),  # zero quaternion
-        ((NAN, 0.0, 2.0), (1, 0, 0, 0), (0.05, 0.05, 0.05), 0.9),
-        ((0.0, INF, 2.0), (1, 0, 0, 0), (0.05, 0.05, 0.05), 0.9),
-        ((0.0, 0.0, 2.0), (NAN, 0, 0, 0), (0.05, 0.05, 0.05), 0.9),
-        ((0.0, 0.0, 2.0), (1, 0, 0, 0), (INF, 0.05, 0.05), 0.9),
-        ((0.0, 0.0, 2.0), (1, 0, 0, 0), (0.05, 0.05, 0.05), NAN),
-        ((1e30, 1e30, 1e30), (1, 0, 0, 0), (1e30, 1e30, 1e30), 0.9),
-    ]
-    scene = [torch.tensor([r[i] for r in rows], dtype=torch.float32) for i in range(4)]
-    colors = torch.rand(len(rows), 3, generator=torch.Generator().manual_seed(0))
-    colors[1, 2] = NAN
-    return scene + [colors]
-
-
-def assert_finite_render(scene, width, height, focal, mode, **options):
-    K = torch.tensor([[focal, 0.0, (width - 1) / 2], [0.0, focal, (height - 1) / 2], [0.0, 0.0, 1.0]])
-    inputs = [t.clone().requires_grad_() for t in scene] + [torch.eye(4).requires_grad_()]
-    out = rasterize(*inputs, K, width, height, mode=mode, backend="cpu", **options)
-    (out.color.sum() + out.depth.sum() + out.alpha.sum()).backward()
-    for name in ("color", "depth", "alpha"):
-        assert torch.isfinite(getattr(out, name)).all(), f"{mode}: {name} not finite"
-    assert (out.alpha >= 0).all() and (out.alpha <= 1 + 1e-6).all()
-    for name, t in zip(INPUT_NAMES, inputs):
-        assert torch.isfinite(t.grad).all(), f"{mode}: gradient of {name} not finite"
-    reference = rasterize(*scene, torch.eye(4), K, width, height, mode=mode, backend="torch", **options)
-    assert (out.color - reference.color).abs().max() <= 1e-4
-    return out
-
-
-@pytest.mark.parametrize("mode", MODES)
-def test_extremes_give_finite_images_and_gradients(ext, mode):
-    out = assert_finite_render(extreme_scene(), 16, 12, 10.0, mode, exact_order=4)
-    assert out.alpha.max() > 0.5
-
-
-@pytest.mark.parametrize("focal", [1.0, 1e5])
-def test_extreme_focal_lengths(ext, focal):
-    assert_finite_render(extreme_scene(), 20, 10, focal, "eaa")
-
-
-@pytest.mark.parametrize("size", [(1, 1), (1, 7), (9, 1), (1920, 1080)])
-def test_image_sizes_from_one_pixel_to_full_hd(ext, size):
-    width, height = size
-    out = assert_finite_render([t[:3] for t in extreme_scene()], width, height, max(width, height) / 2 + 20, "eaa")
-    assert out.color.shape == (height, width, 3) and out.alpha.max() > 0
-
-
-@pytest.mark.parametrize("n", [0, 1])
-def test_zero_and_one_gaussian(ext, n):
-    out = assert_finite_render([t[:n] for t in extreme_scene()], 8, 6, 5.0, "point")
-    assert (out.alpha.sum() > 0) == (n == 1)
+# --- numerical extremes: tests/test_render_extremes.py runs them on every backend ------------------
 
 
 # --- determinism -----------------------------------------------------------------------------------

@@ -1,18 +1,24 @@
-"""Numerical extremes give finite images and finite gradients, never NaN or Inf (issue 3)."""
-from __future__ import annotations
+"""Numerical extremes give finite images and finite gradients, never NaN or Inf (issue 3), on every backend.
 
-import functools
+Each test runs on the pure-PyTorch reference backend and on the compiled cpu backend (skipped where it
+cannot be built); the cpu backend's images must also match the reference's.
+"""
+from __future__ import annotations
 
 import pytest
 import torch
 
-from mipslam.render import MODES
-from mipslam.render import rasterize as rasterize_any_backend
+from mipslam.render import MODES, rasterize
+from mipslam.render import cpu as cpu_backend
 
 NAN, INF = float("nan"), float("inf")
 
-# These tests check the pure-PyTorch reference backend (the compiled one has its own tests).
-rasterize = functools.partial(rasterize_any_backend, backend="torch")
+
+@pytest.fixture(params=["torch", "cpu"])
+def backend(request) -> str:
+    if request.param == "cpu" and not cpu_backend.is_available():
+        pytest.skip(f"the cpu backend cannot be built here: {cpu_backend.unavailable_reason()}")
+    return request.param
 
 
 def extreme_scene():
@@ -54,12 +60,16 @@ def camera(width, height, focal):
     return torch.eye(4), K
 
 
-def render_and_backward(scene, width, height, focal, mode, **options):
+def render_and_backward(scene, width, height, focal, mode, backend, **options):
+    """Render ``scene`` on ``backend`` and back-propagate; the cpu backend's image must match the reference's."""
     inputs = [t.clone().requires_grad_() for t in scene]
     viewmat, K = camera(width, height, focal)
     viewmat.requires_grad_()
-    out = rasterize(*inputs, viewmat, K, width, height, mode=mode, **options)
+    out = rasterize(*inputs, viewmat, K, width, height, mode=mode, backend=backend, **options)
     (out.color.sum() + out.depth.sum() + out.alpha.sum()).backward()
+    if backend != "torch":
+        reference = rasterize(*scene, torch.eye(4), K, width, height, mode=mode, backend="torch", **options)
+        assert (out.color.detach() - reference.color).abs().max() <= 1e-4
     return out, inputs + [viewmat]
 
 
@@ -73,9 +83,9 @@ def assert_finite(out, inputs):
 
 
 @pytest.mark.parametrize("mode", MODES)
-def test_extreme_gaussians_give_finite_images_and_gradients(mode):
+def test_extreme_gaussians_give_finite_images_and_gradients(mode, backend):
     scene = extreme_scene()
-    out, inputs = render_and_backward(scene, 16, 12, 10.0, mode, exact_order=6)
+    out, inputs = render_and_backward(scene, 16, 12, 10.0, mode, backend, exact_order=6)
     assert_finite(out, inputs)
     dropped = [2, 3, 5, 11, 13, 15, 16, 17, 18, 19, 1]  # behind, on near plane, too close, opacity 0, bad rows
     assert not out.visible[dropped].any()
@@ -85,25 +95,25 @@ def test_extreme_gaussians_give_finite_images_and_gradients(mode):
 
 @pytest.mark.parametrize("focal", [1.0, 1e5])
 @pytest.mark.parametrize("mode", ["point", "eaa"])
-def test_extreme_focal_lengths(focal, mode):
-    out, inputs = render_and_backward(extreme_scene(), 20, 10, focal, mode)
+def test_extreme_focal_lengths(focal, mode, backend):
+    out, inputs = render_and_backward(extreme_scene(), 20, 10, focal, mode, backend)
     assert_finite(out, inputs)
 
 
 @pytest.mark.parametrize("size", [(1, 1), (1, 7), (9, 1), (1920, 1080)])
-def test_image_sizes_from_one_pixel_to_full_hd(size):
+def test_image_sizes_from_one_pixel_to_full_hd(size, backend):
     width, height = size
     scene = [t[:3] for t in extreme_scene()]  # few Gaussians keep 1080p cheap
-    out, inputs = render_and_backward(scene, width, height, max(width, height) / 2 + 20, "eaa")
+    out, inputs = render_and_backward(scene, width, height, max(width, height) / 2 + 20, "eaa", backend)
     assert out.color.shape == (height, width, 3)
     assert_finite(out, inputs)
     assert out.alpha.max() > 0
 
 
 @pytest.mark.parametrize("n", [0, 1])
-def test_zero_and_one_gaussian(n):
+def test_zero_and_one_gaussian(n, backend):
     scene = [t[:n] for t in extreme_scene()]
-    out, inputs = render_and_backward(scene, 8, 6, 5.0, "eaa")
+    out, inputs = render_and_backward(scene, 8, 6, 5.0, "eaa", backend)
     assert_finite(out, inputs)
     assert out.n_visible == n
     assert (out.alpha.sum() > 0) == (n == 1)

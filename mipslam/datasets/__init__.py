@@ -5,10 +5,15 @@ synthetic). Every reader validates its folder at construction (lists, poses, fil
 reads images lazily on ``seq[i]``; bad input raises :class:`~mipslam.errors.DatasetError` with the
 file (and line). Frames are float32 RGB in [0, 1] ``[H, W, 3]`` and float32 depth in metres
 ``[H, W]`` (0 = no measurement); ground truth is camera-to-world, OpenCV axes, float64.
+:class:`FrameCache` keeps the last few frames read, on the run's device (mapping revisits keyframes).
 """
 from __future__ import annotations
 
+from collections import OrderedDict
+from dataclasses import replace
 from pathlib import Path
+
+import torch
 
 from mipslam.config import DatasetConfig
 from mipslam.datasets.base import RGBDSequence
@@ -17,9 +22,10 @@ from mipslam.datasets.replica import ReplicaSequence
 from mipslam.datasets.synthetic import SyntheticSequence
 from mipslam.datasets.tum import TUM_CAMERAS, TUMSequence, associate_timestamps
 from mipslam.errors import DatasetError
+from mipslam.types import Frame
 
 __all__ = [
-    "RGBDSequence", "make_sequence", "ReplicaSequence", "TUMSequence", "SyntheticSequence", "TUM_CAMERAS",
+    "RGBDSequence", "make_sequence", "FrameCache", "ReplicaSequence", "TUMSequence", "SyntheticSequence", "TUM_CAMERAS",
     "associate_timestamps", "read_color", "read_depth", "downscale_color", "downscale_depth",
 ]
 
@@ -36,3 +42,26 @@ def make_sequence(cfg: DatasetConfig) -> RGBDSequence:
     if cfg.kind == "synthetic":
         return SyntheticSequence(root, cfg)
     raise DatasetError(root, f"unknown dataset kind {cfg.kind!r}; use replica, tum or synthetic")
+
+
+class FrameCache:
+    """The last ``capacity`` frames read from ``sequence``, moved to ``device``: ``cache[index]`` -> Frame.
+
+    Colour [H, W, 3] and depth [H, W] (metres) are on ``device``; a frame read again after it left the
+    cache is read again from the sequence (same values: readers are deterministic).
+    """
+
+    def __init__(self, sequence: RGBDSequence, device: torch.device, capacity: int):
+        self.sequence, self.device, self.capacity = sequence, device, max(1, capacity)
+        self._frames: OrderedDict[int, Frame] = OrderedDict()
+
+    def __getitem__(self, index: int) -> Frame:
+        if index in self._frames:
+            self._frames.move_to_end(index)
+            return self._frames[index]
+        frame = self.sequence[index]
+        frame = replace(frame, color=frame.color.to(self.device), depth=frame.depth.to(self.device))
+        self._frames[index] = frame
+        while len(self._frames) > self.capacity:
+            self._frames.popitem(last=False)
+        return frame

@@ -195,3 +195,18 @@ def rigidity_error(T: torch.Tensor) -> torch.Tensor:
 def rotation_angle(R: torch.Tensor) -> torch.Tensor:
     """Geodesic angle of a rotation in radians, in [0, pi].  R [..., 3, 3] -> [...]"""
     return so3_log(R).norm(dim=-1)
+
+
+def nearest_rigid(T: torch.Tensor) -> torch.Tensor:
+    """The rigid transform nearest to ``T`` (rotation block projected onto SO(3) by SVD), float64.
+
+    T [4, 4] -> [4, 4]. Tracking and mapping compose poses in the map's float32; their 1e-7 departures
+    from orthonormality would otherwise grow through the constant-velocity prediction
+    ``T_prev T_prev2^-1 T_prev`` (which inverts by transposition) by a factor ~2.4 per frame.
+    """
+    T = T.to(torch.float64).clone()
+    U, _, Vh = torch.linalg.svd(T[:3, :3])
+    d = torch.sign(torch.linalg.det(U @ Vh))
+    T[:3, :3] = U @ torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d])) @ Vh
+    T[3] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
+    return T

@@ -6,10 +6,10 @@ Pure components (no config, no pipeline state): the pose graph and its LM solver
 verification with Open3D (:mod:`.registration`, imported lazily: Open3D loads on first use).
 :mod:`.from_config` maps the ``loop:`` config section to their option objects. :mod:`.closer` is
 the loop-closure stage of the frame loop (:class:`LoopCloser`, built from the ``loop:`` section,
-and the :class:`LoopState` that goes into the SLAM state); :mod:`.faults` holds the fault
-injection used by tests and benchmarks. docs/pgo.md defines the method and reports the benchmarks.
+and the :class:`LoopState` that goes into the SLAM state).
+docs/pgo.md defines the method and reports the benchmarks. The stage's names are imported on first
+use, so that the config (which takes the options' defaults) can import the pure components.
 """
-from mipslam.loop.closer import KeyframeView, LoopCloser, LoopState, LoopStep
 from mipslam.loop.descriptors import (
     CandidateOptions,
     DescriptorOptions,
@@ -32,3 +32,14 @@ __all__ = [
     "select_loop_candidates",
     "RegistrationOptions", "RegistrationResult", "register_rgbd_pair", "register_point_clouds",
 ]
+
+
+_STAGE_NAMES = ("LoopCloser", "LoopState", "LoopStep", "KeyframeView")
+
+
+def __getattr__(name: str):
+    if name in _STAGE_NAMES:
+        from mipslam.loop import closer
+
+        return getattr(closer, name)
+    raise AttributeError(f"module 'mipslam.loop' has no attribute {name!r}")

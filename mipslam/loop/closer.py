@@ -31,25 +31,37 @@ in the SLAM loop"):
 
 The stage never reaches back into the pipeline: it receives the keyframe, the current keyframe
 poses and a function that loads an older keyframe's RGB-D data, and returns a :class:`LoopStep`.
+:func:`close_loops` is its step in the frame loop: it feeds the stage from the SLAM state and applies
+an accepted correction (:func:`correct_map`).
 """
 from __future__ import annotations
 
 import logging
 import math
+import time
 from dataclasses import asdict, dataclass, replace
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import torch
 
 from mipslam.config import LoopConfig
 from mipslam.errors import CheckpointError, MipslamError
+from mipslam.evaluation.image_metrics import psnr
 from mipslam.geometry import rotation_angle, se3_inverse
+from mipslam.losses.photometric import apply_affine_exposure
 from mipslam.loop.descriptors import DescriptorOptions, global_descriptor, select_loop_candidates
 from mipslam.loop.from_config import candidate_options, pgo_options, registration_options
 from mipslam.loop.pose_graph import PoseGraph, edge_residuals, mahalanobis_sq
 from mipslam.loop.registration import RegistrationResult, register_rgbd_pair
 from mipslam.loop.solver import PGOResult, optimize_pose_graph_window
+from mipslam.mapping import Mapper, refine_after_correction
+from mipslam.observer import Observer
+from mipslam.rendering import render_view
 from mipslam.types import Intrinsics
+
+if TYPE_CHECKING:
+    from mipslam.datasets import FrameCache
+    from mipslam.state import SLAMState
 
 logger = logging.getLogger(__name__)
 
@@ -260,8 +272,9 @@ class LoopCloser:
     """Loop detection, verification and SA-PGO on keyframes (reads only the ``loop:`` config section)."""
 
     def __init__(self, config: LoopConfig, *, verification_hook: VerificationHook | None = None,
-                 descriptor_options: DescriptorOptions = DescriptorOptions()):
+                 descriptor_options: DescriptorOptions = DescriptorOptions(), observer: Observer | None = None):
         self.config = config
+        self.observer = observer or Observer()  # times the optimiser as stage "pgo"
         self.descriptor_options = descriptor_options
         self.candidate_options = candidate_options(config)
         self.registration_options = registration_options(config)
@@ -360,7 +373,8 @@ class LoopCloser:
     def _optimise(self, graph: PoseGraph, descriptors: torch.Tensor, keyframe: KeyframeView, new_edges: list[int],
                   reports: tuple[CandidateReport, ...]) -> LoopStep:
         graph = refresh_odometry(graph)
-        result = optimize_pose_graph_window(graph, self.pgo_options, self.config.pgo_window_keyframes)
+        with self.observer.stage("pgo"):
+            result = optimize_pose_graph_window(graph, self.pgo_options, self.config.pgo_window_keyframes)
         pruned = set(result.pruned_edges)
         inlier_limit = self.pgo_options.prune_chi2 if self.pgo_options.prune_chi2 is not None else self.pgo_options.kernel_scale
         inliers = [e for e in new_edges if e not in pruned and float(result.edge_chi2[e]) <= inlier_limit]
@@ -407,3 +421,87 @@ def _loop_edge_summary(graph: PoseGraph, result: PGOResult, edges: list[int]) ->
         rows.append({"edge": [i, j], "weight": float(result.loop_weights[e]),
                      "chi2": _finite_or_none(float(result.edge_chi2[e]))})
     return rows
+
+
+# ----------------------------------------------------------------------------- the step in the frame loop
+
+
+def keyframe_view(state: "SLAMState", frames: "FrameCache", keyframe_id: int) -> KeyframeView:
+    """Keyframe ``keyframe_id``'s RGB-D data as the stage reads it."""
+    record = state.keyframe_record(keyframe_id)
+    frame = frames[record.index]
+    return KeyframeView(keyframe_id, record.index, frame.color, frame.depth, frame.intrinsics)
+
+
+def close_loops(closer: LoopCloser, mapper: Mapper, state: "SLAMState", frames: "FrameCache") -> LoopStep:
+    """The loop-closure step on the newest keyframe of ``state``: :meth:`LoopCloser.process_keyframe` with the
+    odometry evidence since the previous keyframe; the step's reports go into ``state.loop_log``, and an
+    accepted correction moves the keyframes, the other frames and the map (:func:`correct_map`, which refits
+    the map with ``mapper``)."""
+    keyframe_id = state.last_keyframe_id()
+    record = state.keyframe_record(keyframe_id)
+    since = state.keyframe_frames[keyframe_id - 1] if keyframe_id > 0 else len(state.frames) - 1
+    path_m, path_rad = path_motion(torch.stack([f.T_wc for f in state.frames[since:]]))
+    odometry = (path_m, path_rad, tracking_quality(record.tracking_loss, state.running_loss))
+    step = closer.process_keyframe(state.loop, keyframe_view(state, frames, keyframe_id), state.keyframe_poses(),
+                                   odometry, lambda other: keyframe_view(state, frames, other))
+    state.loop = step.state
+    state.loop_log["candidates"].extend(c.to_dict() for c in step.candidates)
+    if step.optimisation is not None:
+        entry = step.optimisation.to_dict()
+        if step.corrected_T_wc is not None:
+            entry.update(correct_map(closer, mapper, state, frames, step))
+        state.loop_log["optimisations"].append(entry)
+    return step
+
+
+def correct_map(closer: LoopCloser, mapper: Mapper, state: "SLAMState", frames: "FrameCache",
+                step: LoopStep) -> dict[str, Any]:
+    """Apply an accepted pose-graph correction (:meth:`~mipslam.state.SLAMState.correct_keyframe_poses`), then
+    ``loop.refine_iterations`` mapping steps over the loop's keyframes (the query and its loop partners) at
+    their corrected, fixed poses (:func:`~mipslam.mapping.refine_after_correction`). Returns the loops.json
+    entry: Gaussians moved, refinement steps and seconds.
+
+    With ``observer.diagnostics`` the entry also has the map's PSNR (dB) at those keyframes against their
+    images: before the correction at the old poses, at the new poses with the map not yet moved (what
+    correcting only the poses would give), after the Gaussians moved with their anchor keyframes, and after
+    the refinement. Each costs a render per keyframe, so a normal run skips them.
+    """
+    check = sorted({step.optimisation.query_keyframe, *(i for i, _ in step.optimisation.new_loop_edges)})
+    diagnostics = closer.observer.diagnostics
+    start = time.perf_counter()
+    measure = (lambda poses: [_keyframe_psnr(mapper, state, frames, k, poses(k)) for k in check]) if diagnostics \
+        else (lambda poses: None)
+    before = measure(lambda k: state.keyframe_record(k).T_wc)
+    poses_only = measure(lambda k: step.corrected_T_wc[k])
+    moved = state.correct_keyframe_poses(step.corrected_T_wc)
+    moved_only = measure(lambda k: state.keyframe_record(k).T_wc)
+    refine_iterations = refine_after_correction(mapper, state, frames, check, closer.config.refine_iterations)
+    after = measure(lambda k: state.keyframe_record(k).T_wc)
+    entry = {"gaussians_moved": moved, "psnr_keyframes": check, "refine_iterations": refine_iterations}
+    if diagnostics:
+        logger.info("loop correction at keyframe %d: moved %d Gaussians; map PSNR at keyframes %s %.2f -> %.2f dB "
+                    "(%.2f dB with the poses alone corrected, %.2f dB with the map moved before refinement)",
+                    step.optimisation.query_keyframe, moved, check, sum(before) / len(before), sum(after) / len(after),
+                    sum(poses_only) / len(poses_only), sum(moved_only) / len(moved_only))
+        entry.update({"psnr_before_db": before, "psnr_poses_only_db": poses_only, "psnr_moved_db": moved_only,
+                      "psnr_after_db": after})
+    else:
+        logger.info("loop correction at keyframe %d: moved %d Gaussians, %d refinement steps over keyframes %s",
+                    step.optimisation.query_keyframe, moved, refine_iterations, check)
+    entry["map_correction_s"] = time.perf_counter() - start
+    return entry
+
+
+@torch.no_grad()
+def _keyframe_psnr(mapper: Mapper, state: "SLAMState", frames: "FrameCache", keyframe_id: int,
+                   T_wc: torch.Tensor) -> float:
+    """PSNR (dB) of the map rendered at ``T_wc`` [4, 4] (camera-to-world) against keyframe ``keyframe_id``'s
+    image, in the render config's footprint mode, with the keyframe's exposure."""
+    record = state.keyframe_record(keyframe_id)
+    frame = frames[record.index]
+    gmap = state.gaussian_map
+    out = render_view(gmap.activated(), se3_inverse(T_wc.to(torch.float64)).to(device=gmap.device, dtype=gmap.dtype),
+                      frame.intrinsics, mapper.render_config)
+    exposure = record.exposure.to(out.color)
+    return float(psnr(apply_affine_exposure(out.color, exposure[0], exposure[1]).clamp(0, 1), frame.color))

@@ -14,6 +14,7 @@ import importlib
 import importlib.util
 import logging
 from dataclasses import dataclass, fields
+from types import SimpleNamespace
 from functools import lru_cache
 
 import torch
@@ -23,7 +24,7 @@ from mipslam.render.footprint import EXACT_K_SIGMA, MODE_DILATION, MODES
 from mipslam.render.projection import ProjectedGaussians, project_gaussians
 from mipslam.render.rasterize_torch import FootprintSettings, rasterize_projected
 
-__all__ = ["rasterize", "render", "RenderOptions", "RenderOutput", "Camera", "MODES", "BACKENDS",
+__all__ = ["rasterize", "render", "RenderOptions", "render_option_problems", "RenderOutput", "Camera", "MODES", "BACKENDS",
            "available_backends", "project_gaussians", "ProjectedGaussians"]
 
 log = logging.getLogger(__name__)
@@ -70,27 +71,45 @@ class RenderOptions:
     checkpoint: bool | None = None
 
     def __post_init__(self):
+        for name, message in RenderOptions.problems(self):
+            raise RenderError(f"render option: {name} {message}")
+
+    @staticmethod
+    def problems(options) -> list[tuple[str, str]]:
+        """(option name, what it must be) for every option of ``options`` out of range; empty when all are valid.
+
+        ``options``: a RenderOptions, or any object with its attributes; the render config
+        (``mipslam.config.RenderConfig``) checks its renderer options with these rules before it builds any.
+        """
+        self = options
         checks = [
-            (self.near_plane > 0, "near_plane must be positive (metres)"),
-            (self.far_plane > self.near_plane, "far_plane must be larger than near_plane (metres)"),
-            (self.k_sigma > 0, "k_sigma must be positive"),
-            (int(self.eaa_max_nodes) == self.eaa_max_nodes and self.eaa_max_nodes >= 1,
-             "eaa_max_nodes must be an integer >= 1 (1 = one node everywhere)"),
-            (self.eaa_gamma >= 0, "eaa_gamma must be >= 0"),
-            (self.eaa_eta >= 0, "eaa_eta must be >= 0"),
-            (self.eaa_tau > 0, "eaa_tau must be positive (pixels)"),
-            (self.eaa_single_node_sigma >= 0, "eaa_single_node_sigma must be >= 0 (px)"),
-            (self.filter_3d_scale is None or self.filter_3d_scale >= 0, "filter_3d_scale must be >= 0 or None"),
-            (self.exact_order >= 1, "exact_order must be >= 1"),
-            (self.tile_size >= 1, "tile_size must be >= 1"),
-            (self.pair_budget >= 1, "pair_budget must be >= 1"),
+            ("near_plane", self.near_plane > 0, "must be positive (metres)"),
+            ("far_plane", self.far_plane > self.near_plane, "must be larger than near_plane (metres)"),
+            ("k_sigma", self.k_sigma > 0, "must be positive"),
+            ("eaa_max_nodes", int(self.eaa_max_nodes) == self.eaa_max_nodes and self.eaa_max_nodes >= 1,
+             "must be an integer >= 1 (1 = one node everywhere)"),
+            ("eaa_gamma", self.eaa_gamma >= 0, "must be >= 0"),
+            ("eaa_eta", self.eaa_eta >= 0, "must be >= 0"),
+            ("eaa_tau", self.eaa_tau > 0, "must be positive (pixels)"),
+            ("eaa_single_node_sigma", self.eaa_single_node_sigma >= 0, "must be >= 0 (px)"),
+            ("filter_3d_scale", self.filter_3d_scale is None or self.filter_3d_scale >= 0, "must be >= 0 or None"),
+            ("exact_order", self.exact_order >= 1, "must be >= 1"),
+            ("tile_size", self.tile_size >= 1, "must be >= 1"),
+            ("pair_budget", self.pair_budget >= 1, "must be >= 1"),
         ]
-        for ok, message in checks:
-            if not ok:
-                raise RenderError(f"render option: {message}")
+        return [(name, message) for name, ok, message in checks if not ok]
 
 
 _OPTION_NAMES = frozenset(f.name for f in fields(RenderOptions))
+
+
+def render_option_problems(**values) -> list[tuple[str, str]]:
+    """:meth:`RenderOptions.problems` of the defaults with ``values`` replacing some of them (not raising)."""
+    unknown = sorted(set(values) - _OPTION_NAMES)
+    if unknown:
+        raise RenderError(f"render option(s) {unknown} unknown; valid options: {sorted(_OPTION_NAMES)}")
+    defaults = {f.name: f.default for f in fields(RenderOptions)}
+    return RenderOptions.problems(SimpleNamespace(**{**defaults, **values}))
 
 
 @dataclass(frozen=True)

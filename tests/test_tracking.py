@@ -1,0 +1,182 @@
+"""Tracking (mipslam/tracking.py): pose recovery, the optimisers, the frustum subset, the motion model."""
+from __future__ import annotations
+
+from dataclasses import replace
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from mipslam.config import RenderConfig, load_config
+from mipslam.gaussians import ActivatedGaussians
+from mipslam.geometry import se3_exp, se3_inverse, se3_log
+from mipslam.pipeline import run_slam
+from mipslam.rendering import frustum_subset, render_view
+import mipslam.tracking as tracking
+from mipslam.state import FrameRecord, SLAMState
+from mipslam.tracking import Tracker, TrackingResult, constant_velocity_prediction, relocalise
+from mipslam.types import Intrinsics
+from tiny_runs import REPO, tiny_config
+
+
+def _preset_tracking_overrides(preset: str) -> list[str]:
+    """The preset's optimiser keys as overrides (read from configs/, so the tests follow a retune)."""
+    tracking = load_config(REPO / "configs" / "synthetic.yaml", preset=preset).tracking
+    keys = ("optimizer", "lr_translation", "lr_rotation", "convergence_threshold")
+    return [f"tracking.{key}={getattr(tracking, key)}" for key in keys]
+
+
+# adam is the default; rprop as the balanced preset sets it.
+_OPTIMIZERS = {"adam": [], "rprop": _preset_tracking_overrides("balanced")}
+
+
+@pytest.mark.parametrize("optimizer,exposure,render_mode", [
+    ("adam", False, None), ("rprop", False, None), ("rprop", True, None),
+    ("rprop", False, "mip"),  # the eaa map rendered with Mip-Splatting's footprint (tracking.render_mode)
+])
+def test_tracking_recovers_a_known_pose_perturbation(one_frame_map, optimizer, exposure, render_mode):
+    seq, config, sequence, gaussians = one_frame_map
+    frame = sequence[0]
+    T_wc_true = sequence.gt_T_wc[0]
+    perturbation = se3_exp(torch.tensor([0.015, -0.01, 0.01, 0.01, -0.015, 0.005], dtype=torch.float64))
+    T_wc_init = T_wc_true @ perturbation
+    settings = tiny_config(seq, "tracking.iterations=80", f"tracking.use_exposure={str(exposure).lower()}",
+                           *_OPTIMIZERS[optimizer]).tracking
+    settings = replace(settings, render_mode=render_mode)
+    assert settings.optimizer == optimizer and config.render.mode == "eaa"
+    tracker = Tracker(settings, config.render)
+    result = tracker.track(gaussians, frame, T_wc_init, running_loss=None)
+    assert result.ok
+    if render_mode is not None:  # the key is honoured: the same start in the map's own mode ends elsewhere
+        own_mode = Tracker(replace(settings, render_mode=None), config.render).track(gaussians, frame, T_wc_init,
+                                                                                      running_loss=None)
+        assert own_mode.loss != result.loss
+    error_before = se3_log(se3_inverse(T_wc_true) @ T_wc_init)
+    error_after = se3_log(se3_inverse(T_wc_true) @ result.T_wc)
+    assert error_after[:3].norm() < 0.3 * error_before[:3].norm(), (error_before, error_after)
+    assert error_after[3:].norm() < 0.3 * error_before[3:].norm(), (error_before, error_after)
+
+
+def test_rprop_tracking_stops_early_at_the_pose_adam_reaches_with_every_iteration(one_frame_map):
+    # From the true pose, Rprop's steps halve at each sign change, so its next step falls below the
+    # threshold well before the cap; Adam keeps stepping by about lr and uses all 80. Both should settle at
+    # the same optimum of this coarse one-frame map (a few mm from the true pose).
+    seq, config, sequence, gaussians = one_frame_map
+    T_wc_true = sequence.gt_T_wc[0]
+    ends = {}
+    for name, extra in _OPTIMIZERS.items():
+        settings = tiny_config(seq, "tracking.iterations=80", *extra).tracking
+        result = Tracker(settings, config.render).track(gaussians, sequence[0], T_wc_true, running_loss=None)
+        assert result.ok
+        ends[name] = (result.iterations, se3_log(se3_inverse(T_wc_true) @ result.T_wc))
+    assert ends["rprop"][0] < 40 and ends["adam"][0] == 80, ends
+    # Adam still steps by about its rate (2 mm, 4 mrad) at the end, so its best iterate places the optimum
+    # only to about a millimetre: float round-off in the map moves it by that much.
+    assert (ends["rprop"][1] - ends["adam"][1]).norm() < 2e-3, ends
+
+
+def test_tracking_against_the_frustum_subset_equals_tracking_against_the_whole_map(one_frame_map):
+    # A far-away copy of the map (behind the camera and off to the side) cannot be drawn: tracking leaves it
+    # out of the projection and must end where tracking the original map ends, with the same loss.
+    seq, config, sequence, gaussians = one_frame_map
+    frame, T_wc_true = sequence[0], sequence.gt_T_wc[0]
+    offset = torch.tensor([0.0, 0.0, -50.0]) @ T_wc_true[:3, :3].T.float()  # 50 m behind the camera
+    doubled = type(gaussians)(torch.cat([gaussians.means, gaussians.means + offset]),
+                              *(torch.cat([t, t]) for t in (gaussians.quats, gaussians.scales, gaussians.opacities,
+                                                            gaussians.colors)))
+    T_wc_init = T_wc_true @ se3_exp(torch.tensor([0.01, -0.01, 0.005, 0.01, -0.01, 0.005], dtype=torch.float64))
+    settings = tiny_config(seq, "tracking.iterations=30").tracking
+    alone = Tracker(settings, config.render).track(gaussians, frame, T_wc_init, running_loss=None)
+    culled = Tracker(settings, config.render).track(doubled, frame, T_wc_init, running_loss=None)
+    assert culled.ok and culled.iterations == alone.iterations
+    assert torch.allclose(culled.T_wc, alone.T_wc, atol=1e-6) and culled.loss == pytest.approx(alone.loss, rel=1e-5)
+
+
+def test_frustum_subset_renders_like_the_whole_map_from_nearby_poses():
+    generator = torch.Generator().manual_seed(0)
+    n = 3000
+    directions = torch.nn.functional.normalize(torch.randn(n, 3, generator=generator), dim=-1)
+    means = directions * (0.5 + 3.0 * torch.rand(n, 1, generator=generator))  # all around the camera
+    gaussians = ActivatedGaussians(means, torch.nn.functional.normalize(torch.randn(n, 4, generator=generator), dim=-1),
+                                   0.01 + 0.05 * torch.rand(n, 3, generator=generator),
+                                   0.2 + 0.8 * torch.rand(n, generator=generator), torch.rand(n, 3, generator=generator))
+    intrinsics = Intrinsics(fx=40.0, fy=40.0, cx=31.5, cy=23.5, width=64, height=48)
+    config = RenderConfig()
+    T_cw = torch.eye(4)
+    assert config.frustum_margin == 0.25
+    subset = frustum_subset(gaussians, T_cw, intrinsics, config)
+    assert 0 < len(subset) < 0.5 * n  # the view sees well under half of a sphere around it
+    nearby = se3_exp(torch.tensor([0.01, -0.01, 0.01, 0.02, -0.015, 0.01], dtype=torch.float64)).float()  # ~1.5 deg
+    for pose in (T_cw, nearby @ T_cw):
+        whole = render_view(gaussians, pose, intrinsics, config)
+        part = render_view(subset, pose, intrinsics, config)
+        assert whole.n_visible == part.n_visible
+        for name in ("color", "depth", "alpha"):
+            assert torch.allclose(getattr(whole, name), getattr(part, name), atol=1e-6), name
+
+
+def test_tracking_renders_the_map_with_its_own_filter_rates(tiny_sequence, tmp_path, monkeypatch):
+    """With ``render.filter_3d`` the frozen map that tracking sees keeps its per-Gaussian sampling rates, so
+    tracking renders the same filtered map that mapping fitted (before session 12 it fell back to the
+    tracked camera's own rate)."""
+    seen = []
+    original = Tracker.track
+
+    def recording_track(self, gaussians, *args, **kwargs):
+        seen.append(gaussians.max_sampling_rate)
+        return original(self, gaussians, *args, **kwargs)
+
+    monkeypatch.setattr(Tracker, "track", recording_track)
+    run_slam(tiny_config(tiny_sequence, "render.filter_3d=true", "dataset.max_frames=3"), tmp_path / "run",
+             evaluate=False)
+    assert len(seen) == 2  # frames 1 and 2 (frame 0 starts the map)
+    for rates in seen:
+        assert rates is not None and not rates.requires_grad and torch.all(rates > 0)
+
+
+def test_the_motion_model_moves_with_a_refined_previous_pose_once():
+    # Tracked: frame 1 is 2 cm right of frame 0. Mapping then refines frame 1 by 5 mm forward. The prediction for
+    # frame 2 repeats the tracked motion from the refined pose; differencing the current poses would add the 5 mm
+    # twice (once in the anchor, once in the motion).
+    T0 = torch.eye(4, dtype=torch.float64)
+    T1_tracked = se3_exp(torch.tensor([0.02, 0.0, 0.0, 0.0, 0.0, 0.01], dtype=torch.float64))
+    refinement = se3_exp(torch.tensor([0.0, 0.0, 0.005, 0.0, 0.0, 0.0], dtype=torch.float64))
+    T1 = T1_tracked @ refinement
+    predicted = constant_velocity_prediction(T1, T1_tracked, T0)
+    torch.testing.assert_close(predicted, T1 @ T1_tracked)
+    torch.testing.assert_close(se3_inverse(T1) @ predicted, se3_inverse(T0) @ T1_tracked)  # the tracked motion
+    # unrefined, it is the plain constant-velocity model; with one frame, the previous pose
+    torch.testing.assert_close(constant_velocity_prediction(T1_tracked, T1_tracked, T0), T1_tracked @ T1_tracked)
+    torch.testing.assert_close(constant_velocity_prediction(T1, T1_tracked, None), T1)
+
+
+def test_the_coarse_levels_get_the_configured_share_of_the_iterations(one_frame_map):
+    _, config, sequence, _ = one_frame_map
+    for share, expected in ((0.5, [20, 20]), (0.25, [10, 30]), (0.0, [40])):
+        settings = replace(config.tracking, iterations=40, coarse_to_fine=(0.5,), coarse_share=share)
+        levels = Tracker(settings, config.render)._levels(sequence[0])
+        assert [level.iterations for level in levels] == expected, share
+        assert levels[-1].intrinsics == sequence[0].intrinsics  # full resolution last
+
+
+def test_relocalisation_runs_above_the_loss_ratio_and_accepts_the_configured_jump(one_frame_map, monkeypatch):
+    _, config, sequence, gaussians = one_frame_map
+    frame = sequence[0]
+    state = SLAMState.initial(config.mapping, 0, torch.device("cpu"))
+    state.frames.append(FrameRecord(0, 0.0, sequence.gt_T_wc[0], torch.zeros(2), "ok", 0.01, 1, 0, -1,
+                                    sequence.gt_T_wc[0]))
+    state.running_loss = 0.01
+    asked = []
+
+    def alignment(*args):
+        asked.append(args[-1])  # the registration options
+        return SimpleNamespace(accepted=False)
+
+    monkeypatch.setattr(tracking, "register_rgbd_odometry", alignment)
+    settings = replace(config.tracking, relocalise_loss_ratio=2.0, relocalise_max_m=0.3, relocalise_max_deg=20.0)
+    tracker = Tracker(settings, config.render)
+    usual = TrackingResult(sequence.gt_T_wc[0], torch.zeros(2), 0.015, 5, 1.0, True, "ok")
+    assert relocalise(tracker, state, frame, {0: frame}, gaussians, usual) is usual and not asked
+    high = replace(usual, loss=0.05)  # 5x the running level, above the ratio 2
+    assert relocalise(tracker, state, frame, {0: frame}, gaussians, high) is high  # the alignment was refused
+    assert [(o.max_correction_m, o.max_correction_deg) for o in asked] == [(0.3, 20.0)]
