@@ -110,13 +110,15 @@ def _build_parser() -> argparse.ArgumentParser:
     ex.add_argument("run_dir", type=Path, help="run folder written by 'mipslam run'")
     ex.add_argument("--mesh", type=Path, required=True, help="output mesh file (.ply, .obj, ...)")
     ex.add_argument("--voxel-size", type=float, default=None,
-                    help="TSDF voxel size in metres (default: 4 pixels at the median rendered depth, in [0.005, 0.1])")
+                    help="TSDF voxel size in metres (default: one rendered pixel at the median depth, in [0.005, 0.1])")
     ex.add_argument("--sdf-trunc", type=float, default=None, help="TSDF truncation in metres (default 4 voxels)")
     ex.add_argument("--depth-max", type=float, default=None, help="ignore rendered depth beyond this (metres)")
     ex.add_argument("--scale", type=float, default=1.0, help="render at this scale of the mapping resolution")
     ex.add_argument("--mode", default=None, help="footprint mode of the renders (default: the run's mode)")
-    ex.add_argument("--tsdf", choices=["auto", "scalable", "voxel_block_grid"], default="auto",
-                    help="Open3D TSDF: ScalableTSDFVolume, VoxelBlockGrid, or auto (the first, the second if it is empty)")
+    ex.add_argument("--tsdf", choices=["voxel_block_grid", "scalable"], default="voxel_block_grid",
+                    help="Open3D TSDF: VoxelBlockGrid (default) or the legacy ScalableTSDFVolume")
+    ex.add_argument("--memory-limit", type=float, default=2048.0, metavar="MB",
+                    help="stop with an error when the TSDF's voxels would need more than this (default 2048 MB)")
 
     sy = sub.add_parser("synth", help="generate a synthetic RGB-D sequence with exact ground truth")
     sy.add_argument("--out", type=Path, required=True, help="output folder (must not exist or be empty)")
@@ -290,7 +292,8 @@ def _cmd_export(args) -> int:
     from mipslam.export import export_mesh
 
     result = export_mesh(args.run_dir, args.mesh, voxel_size=args.voxel_size, sdf_trunc=args.sdf_trunc,
-                         depth_max=args.depth_max, scale=args.scale, mode=args.mode, method=args.tsdf)
+                         depth_max=args.depth_max, scale=args.scale, mode=args.mode, method=args.tsdf,
+                         memory_limit_mb=args.memory_limit)
     print(result.describe())
     return EXIT_OK
 
