@@ -89,7 +89,10 @@ def _build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--association", choices=["timestamp", "index"], default=None,
                     help="pose association (default: timestamp; index for Replica-style runs)")
     ev.add_argument("--max-diff", type=float, default=None, help="timestamp association tolerance in seconds (default 0.02)")
-    ev.add_argument("--out", type=Path, help="where to write metrics.json (default: RUN_DIR/metrics.json, or print only)")
+    ev.add_argument("--out", type=Path,
+                    help="metrics file to write (default: RUN_DIR/metrics.json for the run's own evaluation, "
+                         "RUN_DIR/metrics_<label>.json beside it when scales, modes or other options differ; "
+                         "--gt/--est: print only)")
     ev.add_argument("--frames", choices=["all", "keyframes", "non_keyframes"], default=None,
                     help="render metrics on all frames, keyframes (training views) or non-keyframes (novel views); "
                          "default: the run's eval.frames")
@@ -210,14 +213,17 @@ def _cmd_eval(args) -> int:
         metrics = evaluate_run(args.run_dir, alignment=args.alignment, association=args.association,
                                max_diff=args.max_diff, render=not args.no_render,
                                render_options=_render_options(args), report=not args.no_report)
-        out = args.out or args.run_dir / "metrics.json"
+        # another request than the run's own evaluation goes beside metrics.json, never over it
+        out = args.out or args.run_dir / metrics["evaluation"]["metrics_file"]
     if out is not None:
         from mipslam.io.run_folder import write_json_atomic
 
         write_json_atomic(out, metrics)
     print(_format_metrics(metrics))
     if out is not None:
-        print(f"metrics written to {out}")
+        label = metrics.get("evaluation", {}).get("label")
+        kept = f" (evaluation '{label}'; the run's own metrics.json is unchanged)" if label and args.out is None else ""
+        print(f"metrics written to {out}{kept}")
     return EXIT_OK
 
 
