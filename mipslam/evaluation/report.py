@@ -494,7 +494,9 @@ def _protocol_items(metrics: dict) -> list[str]:
     if protocol:
         association, alignment = protocol.get("association", {}), protocol.get("alignment", {})
         matched = f"{protocol.get('num_matched')} of {protocol.get('num_est_poses')} estimated poses matched"
-        if association.get("method") == "timestamp":
+        if association.get("note"):  # e.g. Replica: the timestamps are frame indices
+            matched += f" ({association['note']})"
+        elif association.get("method") == "timestamp":
             matched += f" by timestamp (within {association.get('max_diff_s')} s)"
         else:
             matched += " by index"
