@@ -121,7 +121,8 @@ def _build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--tsdf", choices=["voxel_block_grid", "scalable"], default="voxel_block_grid",
                     help="Open3D TSDF: VoxelBlockGrid (default) or the legacy ScalableTSDFVolume")
     ex.add_argument("--memory-limit", type=float, default=2048.0, metavar="MB",
-                    help="stop with an error when the TSDF's voxels would need more than this (default 2048 MB)")
+                    help="stop with an error when the TSDF fusion (voxels, block table, meshing) would need more "
+                         "than this (default 2048 MB; VoxelBlockGrid only)")
 
     sy = sub.add_parser("synth", help="generate a synthetic RGB-D sequence with exact ground truth")
     sy.add_argument("--out", type=Path, required=True, help="output folder (must not exist or be empty)")
