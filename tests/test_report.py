@@ -115,7 +115,8 @@ def test_evaluation_label_names_what_differs_from_the_runs_eval_config(tiny_run)
                                                                      lpips=False)) == "point-eaa_every2_nolpips"
     assert evaluation_label(config, render_options=RenderEvalOptions(modes=(config.render.mode,))) is None
     assert evaluation_label(config, render=False) == "trajectory"
-    assert evaluation_label(config, alignment="sim3", render_options=own) == "sim3"
+    assert evaluation_label(config, alignment="sim3", render_options=own) == "align-sim3"
+    assert evaluation_label(config, association="index", max_diff=0.1) == "match-index_maxdiff0p1"
 
 
 def test_cli_eval_with_other_scales_writes_beside_the_runs_metrics(tiny_run, capsys):

@@ -43,7 +43,7 @@ def evaluation_label(config, *, alignment: str | None = None, association: str |
     """None when the request is the run's own evaluation (its ``eval`` config), else a file-name-safe name of
     what differs, parts joined by ``_``: ``multiscale`` (several scales) or ``scale0p5``, the modes
     (``point-eaa``), the frame set, ``every3``, ``gt-resampled``, ``nolpips``, ``trajectory`` (no rendering),
-    the alignment, the association and ``maxdiff0p1``."""
+    ``align-sim3``, ``match-index`` and ``maxdiff0p1``."""
     cfg = config.eval
     parts: list[str] = []
     if not render:
@@ -65,9 +65,9 @@ def evaluation_label(config, *, alignment: str | None = None, association: str |
         if not render_options.lpips:
             parts.append("nolpips")
     if alignment is not None and alignment != cfg.alignment:
-        parts.append(alignment)
+        parts.append(f"align-{alignment}")
     if association is not None and association != "timestamp":
-        parts.append(association)
+        parts.append(f"match-{association}")
     if max_diff is not None:
         parts.append(f"maxdiff{_scale_text(max_diff)}")
     return "_".join(parts) or None
