@@ -167,3 +167,12 @@ def test_cli_eval_out_says_where(tiny_run, tmp_path):
                  "--out", str(out)]) == 0
     assert json.loads(out.read_text())["evaluation"]["label"] == "multiscale_every3_nolpips"
     assert not (tiny_run / "metrics_multiscale_every3_nolpips.json").exists()
+
+
+def test_another_evaluation_before_the_runs_own_says_so(tmp_path):
+    run = make_tiny_run(tmp_path)
+    metrics = evaluate_run(run, render=False)  # 'trajectory': the run has no metrics.json yet
+    assert metrics["evaluation"]["label"] == "trajectory" and metrics["evaluation"]["metrics_file"] == "metrics_trajectory.json"
+    page = (run / "report" / "report.html").read_text(encoding="utf-8")
+    assert "(metrics.json) is not there" in page and "Evaluation 'trajectory'" in page
+    assert not (run / "report" / "trajectory.png").exists()  # the main plots belong to the run's own evaluation
