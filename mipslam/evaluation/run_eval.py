@@ -4,7 +4,13 @@ Reads ``traj_est.txt`` and ``traj_gt.txt`` (TUM format) and ``run.json`` (how th
 its frames: Replica and its synthetic twin by frame index, TUM by time), evaluates with the run's
 ``eval`` config section (alignment, association tolerance, frame set, scales, modes) unless arguments
 override it, renders the map for the render metrics (:mod:`mipslam.evaluation.render_eval`), writes
-``RUN_DIR/report/`` (:mod:`mipslam.evaluation.report`) and returns the dict written to ``metrics.json``.
+``RUN_DIR/report/`` (:mod:`mipslam.evaluation.report`) and returns the dict for the metrics file.
+
+The run's own evaluation (its ``eval`` config, as ``mipslam run`` does at the end) is ``metrics.json``. Any other
+request (other scales, modes, frame set, frame step, ground truth, alignment, association, no LPIPS, no rendering)
+is named by what differs (:func:`evaluation_label`, e.g. ``multiscale`` or ``multiscale_point-eaa``) and belongs in
+``metrics_<label>.json`` beside it, with its own section of the report, so it never replaces the run's metrics;
+the same request made again replaces its own file.
 """
 from __future__ import annotations
 
@@ -20,6 +26,52 @@ from mipslam.io.tum import read_tum_trajectory
 
 logger = logging.getLogger(__name__)
 
+DEFAULT_METRICS_FILE = "metrics.json"
+
+
+def metrics_file_name(label: str | None) -> str:
+    """``metrics.json`` for the run's own evaluation, ``metrics_<label>.json`` for another."""
+    return DEFAULT_METRICS_FILE if label is None else f"metrics_{label}.json"
+
+
+def _scale_text(scale: float) -> str:
+    return f"{scale:g}".replace(".", "p")
+
+
+def evaluation_label(config, *, alignment: str | None = None, association: str | None = None,
+                     max_diff: float | None = None, render: bool = True, render_options=None) -> str | None:
+    """None when the request is the run's own evaluation (its ``eval`` config), else a file-name-safe name of
+    what differs, parts joined by ``_``: ``multiscale`` (several scales) or ``scale0p5``, the modes
+    (``point-eaa``), the frame set, ``every3``, ``gt-resampled``, ``nolpips``, ``trajectory`` (no rendering),
+    ``align-sim3``, ``match-index`` and ``maxdiff0p1``."""
+    cfg = config.eval
+    parts: list[str] = []
+    if not render:
+        parts.append("trajectory")
+    elif render_options is not None:
+        scales = tuple(float(s) for s in render_options.scales)
+        if sorted(set(scales)) != sorted(set(float(s) for s in cfg.scales)):
+            parts.append("multiscale" if len(set(scales)) > 1 else f"scale{_scale_text(scales[0])}")
+        run_modes = tuple(cfg.modes) or (config.render.mode,)
+        modes = tuple(render_options.modes) or (config.render.mode,)
+        if modes != run_modes:
+            parts.append("-".join(modes))
+        if render_options.frames != cfg.frames:
+            parts.append(render_options.frames)
+        if render_options.every is not None:
+            parts.append(f"every{render_options.every}")
+        if render_options.ground_truth != "auto":
+            parts.append(f"gt-{render_options.ground_truth}")
+        if not render_options.lpips:
+            parts.append("nolpips")
+    if alignment is not None and alignment != cfg.alignment:
+        parts.append(f"align-{alignment}")
+    if association is not None and association != "timestamp":
+        parts.append(f"match-{association}")
+    if max_diff is not None:
+        parts.append(f"maxdiff{_scale_text(max_diff)}")
+    return "_".join(parts) or None
+
 
 def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, association: str | None = None,
                  max_diff: float | None = None, render: bool = True, render_options=None,
@@ -29,7 +81,11 @@ def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, associati
     render: also compute render metrics (``render_options``: a
     :class:`~mipslam.evaluation.render_eval.RenderEvalOptions`; None = the run's ``eval`` config:
     frames, scales, modes). When the dataset folder is gone the render section says why it is
-    unavailable and the trajectory metrics are still returned. report: write ``RUN_DIR/report/``.
+    unavailable and the trajectory metrics are still returned. report: write ``RUN_DIR/report/`` (the run's own
+    evaluation as the page's main part, any other as its own section; see the module docstring).
+
+    The dict's ``"evaluation"`` entry names the request (``label``: None for the run's own evaluation) and the
+    file it belongs in (``metrics_file``: :func:`metrics_file_name`).
     """
     folder = RunFolder(run_dir)
     config = read_run_config(folder)
@@ -58,8 +114,13 @@ def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, associati
         trajectory["protocol"]["association"]["note"] = (
             "timestamps are frame indices (Replica layout): frames match by index")
     flagged = frames["flagged"]
+    label = evaluation_label(config, alignment=alignment, association=association, max_diff=max_diff, render=render,
+                             render_options=render_options)
     metrics = {
         "run_dir": str(folder.root),
+        "evaluation": {"label": label, "metrics_file": metrics_file_name(label),
+                       "meaning": "the run's own evaluation (its eval config)" if label is None else
+                                  "a request other than the run's eval config; metrics.json keeps the run's own"},
         "dataset": info["dataset"],
         "frames_processed": info["frames_processed"],
         "keyframes": info["keyframes"],
@@ -84,6 +145,6 @@ def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, associati
     if report:
         from mipslam.evaluation.report import write_report
 
-        written = write_report(folder.root, metrics, evaluation)
+        written = write_report(folder.root, metrics, evaluation, label=label)
         metrics["report"] = str(written.html.relative_to(folder.root))
     return metrics
