@@ -9,7 +9,6 @@ checkpoint every ``run.checkpoint_every`` frames, at the end, and on Ctrl-C. Wit
 from __future__ import annotations
 
 import logging
-import math
 import signal
 import time
 from collections import OrderedDict
@@ -53,8 +52,8 @@ class RunSummary:
     metrics: dict | None
 
     def describe(self) -> str:
-        fps = self.frames / self.seconds if self.seconds > 0 else math.nan
-        text = (f"run folder {self.run_dir}: {self.frames} frames ({fps:.2f} frames/s this session), "
+        rate = f"{self.frames / self.seconds:.2f} frames/s this session" if self.seconds > 0 else "no new frames"
+        text = (f"run folder {self.run_dir}: {self.frames} frames ({rate}), "
                 f"{self.keyframes} keyframes, {self.gaussians} Gaussians, {self.flagged} frames flagged")
         ate = (self.metrics or {}).get("trajectory", {}).get("ate")
         if ate:
