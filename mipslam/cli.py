@@ -446,6 +446,11 @@ def _configure_logging(debug: bool, quiet: bool) -> None:
     logging.getLogger("data_synth").setLevel(level)
 
 
+def _one_line(exc: BaseException) -> str:
+    """The message on one line (a library message quoting a user's text with a line break in it, say)."""
+    return " | ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     debug = "--debug" in argv
@@ -465,7 +470,7 @@ def main(argv: list[str] | None = None) -> int:
     except MipslamError as exc:
         if debug:
             log.exception("failed")
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
@@ -473,7 +478,8 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # the last line of defence: one line, traceback only with --debug
         if debug:
             raise
-        print(f"error: unexpected {type(exc).__name__}: {exc} (rerun with --debug for the traceback)", file=sys.stderr)
+        print(f"error: unexpected {type(exc).__name__}: {_one_line(exc)} (rerun with --debug for the traceback)",
+              file=sys.stderr)
         return EXIT_FAILURE
 
 

@@ -28,6 +28,11 @@ CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 PRESETS = ("fast", "balanced", "accurate")
 
 
+def _quoted(text: str) -> str:
+    """``'text'`` for a message, escaped (``repr``) when it holds a line break or another unprintable character."""
+    return f"'{text}'" if text.isprintable() else repr(text)
+
+
 def _check(cond: bool, key: str, message: str) -> None:
     if not cond:
         raise ConfigError(f"config key '{key}': {message}")
@@ -427,7 +432,7 @@ def _build(cls: type, data: Mapping[str, Any], prefix: str) -> Any:
                 raise ConfigError(f"config key '{prefix}{key}': {RETIRED_KEYS[f'{prefix}{key}']}")
             near = difflib.get_close_matches(str(key), names, n=1, cutoff=0.5)
             hint = f"; did you mean '{prefix}{near[0]}'?" if near else f"; valid keys: {', '.join(names)}"
-            raise ConfigError(f"unknown config key '{prefix}{key}'{hint}")
+            raise ConfigError(f"unknown config key {_quoted(f'{prefix}{key}')}{hint}")
     kwargs = {}
     for name in names:
         if name not in data:
@@ -475,52 +480,58 @@ def _deep_merge(base: dict[str, Any], override: Mapping[str, Any]) -> dict[str, 
     return out
 
 
+def _shown(path: Path) -> str:
+    """A path for a one-line message (escaped when its name holds a line break or another unprintable character)."""
+    text = str(path)
+    return text if text.isprintable() else repr(text)
+
+
 def _missing_file_message(path: Path) -> str:
     """'config file not found', with the nearest YAML file of that folder when there is a likely one."""
     folder = path.parent
     if not folder.is_dir():
-        return f"{path}: config file not found (folder {folder} does not exist)"
+        return f"{_shown(path)}: config file not found (folder {_shown(folder)} does not exist)"
     try:
         names = sorted(p.name for p in folder.iterdir() if p.suffix.lower() in (".yaml", ".yml") and p.is_file())
     except OSError:
         names = []
     near = difflib.get_close_matches(path.name, names, n=1, cutoff=0.6)
     if near:
-        return f"{path}: config file not found; did you mean {folder / near[0]}?"
-    return f"{path}: config file not found" + (f" (YAML files there: {', '.join(names[:6])})" if names else "")
+        return f"{_shown(path)}: config file not found; did you mean {_shown(folder / near[0])}?"
+    return f"{_shown(path)}: config file not found" + (f" (YAML files there: {', '.join(map(_shown, names[:6]))})" if names else "")
 
 
 def _yaml_error_message(path: Path, exc: Exception) -> str:
     """One line naming the file, the line and column (1-based) where PyYAML gives them, and the problem."""
     if isinstance(exc, RecursionError):
-        return f"{path}: invalid YAML (nested too deeply)"
+        return f"{_shown(path)}: invalid YAML (nested too deeply)"
     if isinstance(exc, yaml.MarkedYAMLError):
         mark = exc.problem_mark or exc.context_mark
         where = f":{mark.line + 1}:{mark.column + 1}" if mark is not None else ""
-        problem = " ".join(str(part) for part in (exc.context, exc.problem) if part)
-        return f"{path}{where}: invalid YAML ({problem or type(exc).__name__})"
+        problem = " ".join("; ".join(str(part) for part in (exc.context, exc.problem) if part).split())
+        return f"{_shown(path)}{where}: invalid YAML ({problem or type(exc).__name__})"
     # a value PyYAML recognised but could not build (e.g. the date 2001-13-45), or another YAMLError
     detail = " ".join(str(exc).split()) or type(exc).__name__
-    return f"{path}: invalid YAML ({detail})"
+    return f"{_shown(path)}: invalid YAML ({detail})"
 
 
 def _read_yaml(path: Path) -> dict[str, Any]:
     if path.is_dir():
-        hint = f"; the run's config is {path / 'config.yaml'}" if (path / "config.yaml").is_file() else ""
-        raise ConfigError(f"{path}: is a folder, not a YAML config file{hint}")
+        hint = f"; the run's config is {_shown(path / 'config.yaml')}" if (path / "config.yaml").is_file() else ""
+        raise ConfigError(f"{_shown(path)}: is a folder, not a YAML config file{hint}")
     try:
         raw = path.read_bytes()
     except FileNotFoundError:
         raise ConfigError(_missing_file_message(path)) from None
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read config file ({exc.strerror or exc})") from None
+        raise ConfigError(f"{_shown(path)}: cannot read config file ({exc.strerror or exc})") from None
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise ConfigError(f"{path}: not a YAML text file (byte 0x{raw[exc.start]:02x} at offset {exc.start} is not "
+        raise ConfigError(f"{_shown(path)}: not a YAML text file (byte 0x{raw[exc.start]:02x} at offset {exc.start} is not "
                           "UTF-8); give a .yaml config such as configs/replica.yaml") from None
     if "\x00" in text:
-        raise ConfigError(f"{path}: not a YAML text file (it contains NUL bytes); give a .yaml config such as "
+        raise ConfigError(f"{_shown(path)}: not a YAML text file (it contains NUL bytes); give a .yaml config such as "
                           "configs/replica.yaml")
     try:
         data = yaml.safe_load(text)
@@ -529,7 +540,7 @@ def _read_yaml(path: Path) -> dict[str, Any]:
     if data is None:
         return {}
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: the top level must be a mapping of sections, got {type(data).__name__}")
+        raise ConfigError(f"{_shown(path)}: the top level must be a mapping of sections, got {type(data).__name__}")
     return data
 
 
@@ -580,8 +591,8 @@ def load_yaml_tree(path: str | Path, _stack: tuple[Path, ...] = ()) -> dict[str,
     except (OSError, RuntimeError, ValueError) as exc:  # a NUL byte in the name, a symlink loop
         raise ConfigError(f"config file {str(path)!r}: not a usable path ({exc})") from None
     if path in _stack:
-        cycle = " -> ".join(str(p) for p in (*_stack, path))
-        raise ConfigError(f"{path}: cyclic inherit_from ({cycle}); remove one of the links")
+        cycle = " -> ".join(_shown(p) for p in (*_stack, path))
+        raise ConfigError(f"{_shown(path)}: cyclic inherit_from ({cycle}); remove one of the links")
     data = _read_yaml(path)
     _resolve_paths(data, path.parent)
     parents = data.pop("inherit_from", None)
@@ -590,7 +601,7 @@ def load_yaml_tree(path: str | Path, _stack: tuple[Path, ...] = ()) -> dict[str,
     if isinstance(parents, str):
         parents = [parents]
     if not isinstance(parents, list) or not all(isinstance(p, str) for p in parents):
-        raise ConfigError(f"{path}: inherit_from must be a file name or a list of file names")
+        raise ConfigError(f"{_shown(path)}: inherit_from must be a file name or a list of file names")
     merged: dict[str, Any] = {}
     for parent in parents:
         merged = _deep_merge(merged, load_yaml_tree(path.parent / parent, (*_stack, path)))
@@ -600,11 +611,12 @@ def load_yaml_tree(path: str | Path, _stack: tuple[Path, ...] = ()) -> dict[str,
 def parse_override(text: str) -> tuple[list[str], Any]:
     """``'tracking.iterations=30'`` -> (['tracking', 'iterations'], 30); the value is read as YAML."""
     if "=" not in text:
-        raise ConfigError(f"override '{text}' must look like section.key=value")
+        raise ConfigError(f"override {_quoted(text)} must look like section.key=value")
     key, raw = text.split("=", 1)
     parts = [p for p in key.strip().split(".")]
     if len(parts) < 2 or not all(parts):
-        raise ConfigError(f"override '{text}': the key must name a section and a key, e.g. tracking.iterations=30")
+        raise ConfigError(f"override {_quoted(text)}: the key must name a section and a key, e.g. "
+                          "tracking.iterations=30")
     try:
         value = yaml.safe_load(raw) if raw.strip() else ""
     except (yaml.YAMLError, ValueError, TypeError, OverflowError, RecursionError):

@@ -319,7 +319,7 @@ class RunFolder:
 
 # Everything a run writes at its top level besides config.yaml, checkpoints/ and report/.
 RUN_OUTPUTS = frozenset({"traj_est.txt", "traj_gt.txt", "keyframes.txt", "map.ply", "metrics.json", "timings.json",
-                         "loops.json", "run.json", "frames.json"})
+                         "loops.json", "run.json", "frames.json", "bench_eval.json"})
 RUN_ENTRIES = RUN_OUTPUTS | {"config.yaml", RunFolder.CHECKPOINTS, RunFolder.REPORT}
 _CHECKPOINT_FILE = re.compile(r"^checkpoint-\d{6,}\.ckpt$")  # mipslam.checkpoint.CHECKPOINT_PATTERN
 _REPORT_SUFFIXES = (".png", ".html", ".svg", ".json", ".csv", ".txt")
