@@ -318,7 +318,7 @@ def _check_replaceable_metrics(path: Path) -> None:
         earlier = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, ValueError):
         earlier = None
-    if not isinstance(earlier, dict):
+    if not (isinstance(earlier, dict) and ("trajectory" in earlier or "ate" in earlier)):
         raise _UsageError(f"{path}: exists and is not a metrics file written by mipslam eval; it is left as it is: "
                           "choose another --out")
 
@@ -397,21 +397,28 @@ def _cmd_synth(args) -> int:
 
 def _cmd_export(args) -> int:
     from mipslam.export import export_mesh
-    from mipslam.io.run_folder import RUN_ENTRIES
 
-    mesh = args.mesh
-    if _same_path(mesh.parent, args.run_dir) and mesh.name in RUN_ENTRIES:
-        raise _UsageError(f"{mesh}: is one of the run's own files; give the mesh another name, e.g. "
-                          f"{mesh.with_name('mesh.ply')}")
-    if mesh.is_dir():
-        raise _UsageError(f"{mesh}: is a folder; give --mesh a file name such as {mesh / 'mesh.ply'}")
-    if mesh.exists() and not args.overwrite:
-        raise _UsageError(f"{mesh}: exists; replace it with --overwrite or choose another --mesh")
-
+    _check_mesh_target(args.mesh, args.run_dir, overwrite=args.overwrite)
     result = export_mesh(args.run_dir, args.mesh, voxel_size=args.voxel_size, sdf_trunc=args.sdf_trunc,
                          depth_max=args.depth_max, scale=args.scale, mode=args.mode, method=args.tsdf)
     print(result.describe())
     return EXIT_OK
+
+
+def _check_mesh_target(mesh: Path, run_dir: Path, *, overwrite: bool) -> None:
+    """A mesh never replaces a file of the run it comes from (its map.ply), a folder, or, without
+    ``--overwrite``, any existing file."""
+    from mipslam.io.run_folder import RUN_ENTRIES
+
+    if not run_dir.is_dir():
+        return  # export_mesh names the missing run folder
+    if _same_path(mesh.parent, run_dir) and mesh.name in RUN_ENTRIES:
+        raise _UsageError(f"{mesh}: is one of the run's own files; give the mesh another name, e.g. "
+                          f"{mesh.with_name('mesh.ply')}")
+    if mesh.is_dir():
+        raise _UsageError(f"{mesh}: is a folder; give --mesh a file name such as {mesh / 'mesh.ply'}")
+    if mesh.exists() and not overwrite:
+        raise _UsageError(f"{mesh}: exists; replace it with --overwrite or choose another --mesh")
 
 
 def _cmd_bench(args) -> int:

@@ -390,11 +390,13 @@ def prepare_new_run_folder(path: str | Path, *, overwrite: bool = False) -> bool
         raise MipslamError(f"{folder.root}: exists and is not a folder; choose another --out")
     if contents.empty:
         return True
+    if contents.foreign and contents.holds_run:
+        raise MipslamError(f"{folder.root}: holds a mipslam run and files a run did not make "
+                           f"({contents.describe_foreign()}); continue the run with --resume {folder.root}, or choose "
+                           "another --out (--overwrite deletes only a run's own files: move the others away first)")
     if contents.foreign:
-        what = "holds a mipslam run and other files" if contents.holds_run else "is not empty and holds no mipslam run"
-        raise MipslamError(f"{folder.root}: {what} ({contents.describe_foreign()}); a run never writes over files it "
-                           "did not make: choose another --out" + (", or move those files away and use --resume or "
-                                                                    "--overwrite" if contents.holds_run else ""))
+        raise MipslamError(f"{folder.root}: is not empty and holds no mipslam run ({contents.describe_foreign()}); "
+                           "a run goes into a new or empty folder: choose another --out")
     if contents.holds_run and not overwrite:
         state = f"{len(contents.checkpoints)} checkpoint(s)" if contents.checkpoints else "no checkpoint"
         finished = "a finished run" if folder.traj_est.is_file() else "a partial run"
