@@ -181,7 +181,7 @@ def _cmd_run(args) -> int:
     from mipslam.config import load_config
     from mipslam.datasets import make_sequence
     from mipslam.io.run_folder import RunFolder, prepare_new_run_folder
-    from mipslam.pipeline import run_slam
+    from mipslam.pipeline import resolve_device, run_slam
 
     if args.resume is not None:
         if args.out is not None and not _same_path(args.out, args.resume):
@@ -199,9 +199,14 @@ def _cmd_run(args) -> int:
     else:
         if args.config is None:
             raise _UsageError("mipslam run: give a CONFIG file to start a run, or --resume RUN_DIR to continue one")
+        if args.config.is_dir() and (args.config / RunFolder.CHECKPOINTS).is_dir():
+            raise _UsageError(f"{args.config}: is a run folder, not a config file; continue it with "
+                              f"mipslam run --resume {args.config}")
         config = load_config(args.config, preset=args.preset, overrides=args.overrides)
         folder = RunFolder(args.out or _default_run_dir(args.config))
-        make_sequence(config.dataset)  # a wrong dataset path fails here, before any folder is made or emptied
+        # What can be checked before a folder is made or an earlier run replaced: the dataset opens, the device exists.
+        make_sequence(config.dataset)
+        resolve_device(config.run.device)
         existed = prepare_new_run_folder(folder.root, overwrite=args.overwrite)
     # What is alive now (modules, the config) lives for the whole run: keep it out of the cyclic collector's
     # full passes, each of which would rescan ~200k objects (0.15-0.2 s; 0.4 s of GC in 20 frames -> 0.1 s).

@@ -171,18 +171,27 @@ def test_overwrite_replaces_a_run_but_never_foreign_files(partial_run, tiny_sequ
     assert "give one of them" in error_line(capsys)
 
 
-def test_a_run_that_fails_before_its_first_frame_leaves_no_folder(tiny_sequence, tmp_path, capsys):
+def test_a_run_that_fails_before_its_first_frame_leaves_no_folder(tiny_sequence, tmp_path, capsys, monkeypatch):
     missing = tmp_path / "no_such_sequence"
     assert main(run_argv(missing, tmp_path / "runs" / "a")) == 2
     assert str(missing) in error_line(capsys)
     assert not (tmp_path / "runs").exists()
-    if torch.cuda.is_available():
-        return
-    # a failure after the folder was made (no CUDA device) removes what the run created, and only that
-    assert main(run_argv(tiny_sequence, tmp_path / "b", "run.device=cuda")) == 2
-    assert "cuda" in error_line(capsys) and not (tmp_path / "b").exists()
+    if not torch.cuda.is_available():
+        assert main(run_argv(tiny_sequence, tmp_path / "b", "run.device=cuda")) == 2
+        assert "cuda" in error_line(capsys) and not (tmp_path / "b").exists()
+    # A failure after the run made its folder (injected where the run opens its sequence) removes what the
+    # run created, and only that: a folder that existed before stays.
+    from mipslam import pipeline
+    from mipslam.errors import MipslamError
+
+    def fail(*args, **kwargs):
+        raise MipslamError("injected failure before the first frame")
+
+    monkeypatch.setattr(pipeline, "make_sequence", fail)
+    assert main(run_argv(tiny_sequence, tmp_path / "c")) == 2
+    assert "injected" in error_line(capsys) and not (tmp_path / "c").exists()
     (tmp_path / "empty").mkdir()
-    assert main(run_argv(tiny_sequence, tmp_path / "empty", "run.device=cuda")) == 2
+    assert main(run_argv(tiny_sequence, tmp_path / "empty")) == 2
     assert (tmp_path / "empty").is_dir() and not any((tmp_path / "empty").iterdir())
 
 
@@ -233,7 +242,9 @@ def test_resume_with_the_same_folder_written_relative_and_with_a_changed_result_
     assert main(["-q", "run", "--resume", str(run_dir), "--no-eval", "--set", f"dataset.path={other}"]) == 0
 
 
-def test_resume_errors_say_what_to_type(tmp_path, capsys):
+def test_resume_errors_say_what_to_type(partial_run, tmp_path, capsys):
+    assert main(["run", str(partial_run)]) == 2  # the run folder given as the config
+    assert f"continue it with mipslam run --resume {partial_run}" in error_line(capsys)
     assert main(["run", "--resume", str(tmp_path / "typo")]) == 2
     assert "no such run folder" in error_line(capsys) and not (tmp_path / "typo").exists()
     (tmp_path / "bare").mkdir()
