@@ -247,8 +247,7 @@ def _check_resumable(folder, *, config_given: bool) -> None:
                           "run wrote")
     if not contents.checkpoints:
         raise _UsageError(f"{folder.root}: no checkpoint to resume from (the run stopped before its first one, or "
-                          f"this is not a run folder); start it again with mipslam run CONFIG --out {folder.root} "
-                          "--overwrite")
+                          f"this is not a run folder); start it again with mipslam run CONFIG --out {folder.root}")
     if not config_given and not folder.config_yaml.is_file():
         raise _UsageError(f"{folder.config_yaml}: missing; give the run's config: mipslam run CONFIG --resume "
                           f"{folder.root}")

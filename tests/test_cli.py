@@ -249,7 +249,7 @@ def test_resume_errors_say_what_to_type(partial_run, tmp_path, capsys):
     assert "no such run folder" in error_line(capsys) and not (tmp_path / "typo").exists()
     (tmp_path / "bare").mkdir()
     assert main(["run", "--resume", str(tmp_path / "bare")]) == 2
-    assert "--overwrite" in error_line(capsys)
+    assert "no checkpoint to resume from" in (err := error_line(capsys)) and f"--out {tmp_path / 'bare'}" in err
 
 
 # ----------------------------------------------------------------------------- config files: one line, exit 2
