@@ -47,8 +47,9 @@ def check_outcome(load) -> None:
         assert message and "\n" not in message, message
         return
     assert isinstance(config, Config)
-    floats = [v for section in config_to_dict(config).values() for v in section.values() if isinstance(v, float)]
-    assert all(math.isfinite(v) for v in floats), floats
+    entries = [v for section in config_to_dict(config).values() for v in section.values()]
+    floats = [x for v in entries for x in (v if isinstance(v, list) else [v]) if isinstance(x, float)]
+    assert all(math.isfinite(x) for x in floats), floats
 
 
 @FUZZ
