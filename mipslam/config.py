@@ -498,7 +498,8 @@ def _missing_file_message(path: Path) -> str:
     near = difflib.get_close_matches(path.name, names, n=1, cutoff=0.6)
     if near:
         return f"{_shown(path)}: config file not found; did you mean {_shown(folder / near[0])}?"
-    return f"{_shown(path)}: config file not found" + (f" (YAML files there: {', '.join(map(_shown, names[:6]))})" if names else "")
+    listing = f" (YAML files there: {', '.join(map(_shown, names[:6]))})" if names else ""
+    return f"{_shown(path)}: config file not found{listing}"
 
 
 def _yaml_error_message(path: Path, exc: Exception) -> str:
@@ -528,8 +529,8 @@ def _read_yaml(path: Path) -> dict[str, Any]:
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise ConfigError(f"{_shown(path)}: not a YAML text file (byte 0x{raw[exc.start]:02x} at offset {exc.start} is not "
-                          "UTF-8); give a .yaml config such as configs/replica.yaml") from None
+        raise ConfigError(f"{_shown(path)}: not a YAML text file (byte 0x{raw[exc.start]:02x} at offset {exc.start} "
+                          "is not UTF-8); give a .yaml config such as configs/replica.yaml") from None
     if "\x00" in text:
         raise ConfigError(f"{_shown(path)}: not a YAML text file (it contains NUL bytes); give a .yaml config such as "
                           "configs/replica.yaml")
@@ -574,11 +575,6 @@ def with_absolute_paths(data: Mapping[str, Any], base: str | Path | None = None)
     out = {key: dict(value) if isinstance(value, Mapping) else value for key, value in data.items()}
     _resolve_paths(out, Path.cwd() if base is None else Path(base))
     return out
-
-
-def path_keys() -> tuple[str, ...]:
-    """Dotted names of the config keys that hold file-system paths."""
-    return tuple(".".join(key) for key in _PATH_KEYS)
 
 
 def load_yaml_tree(path: str | Path, _stack: tuple[Path, ...] = ()) -> dict[str, Any]:
