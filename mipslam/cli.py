@@ -79,7 +79,8 @@ def _build_parser() -> argparse.ArgumentParser:
     run.add_argument("config", type=Path, nargs="?",
                      help="YAML config (e.g. configs/replica.yaml); with --resume, default the run's own config.yaml")
     _add_config_args(run)
-    run.add_argument("--out", type=Path, help="run folder, new or empty (default: runs/<config name>-<time>)")
+    run.add_argument("--out", type=Path, metavar="DIR",
+                     help="run folder, new or empty (default: runs/<config name>-<time>)")
     run.add_argument("--overwrite", action="store_true",
                      help="replace the run already in --out (deletes only the files a run writes)")
     run.add_argument("--resume", type=Path, metavar="RUN_DIR",
