@@ -22,8 +22,9 @@ after the new one is complete, keeping ``keep`` of them (``run.keep_checkpoints`
 is reported with a warning and the previous good one is used.
 
 Resume compatibility: :func:`config_differences` compares the saved and the current resolved
-config key by key; every key must match except those in :data:`RESUME_FREE_KEYS` (settings that
-do not change the computation's result, such as how often to checkpoint).
+config key by key (paths compared as absolute paths); every key must match except those in
+:data:`RESUME_FREE_KEYS` (settings that do not change the computation's result, such as how often
+to checkpoint), whose changes are allowed and logged (:func:`free_config_differences`).
 """
 from __future__ import annotations
 
@@ -43,6 +44,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 import torch
 
+from mipslam.config import Config, config_to_dict, with_absolute_paths
 from mipslam.errors import CheckpointError
 from mipslam.io.run_folder import atomic_write
 
@@ -64,6 +66,9 @@ RESUME_FREE_KEYS: tuple[str, ...] = (
     "run.threads",
     "run.evaluate_at_end",
     "run.device",
+    "run.release_memory_every",
+    "run.mmap_threshold_kib",
+    "run.diagnostics",
     "dataset.max_frames",
     "eval",
 )
@@ -164,6 +169,33 @@ def _describe_foreign(data: bytes) -> str:
     if data[:4] == b"PK\x03\x04":
         return " (it looks like a zip/torch.save file; mipslam never unpickles files)"
     return ""
+
+
+def read_checkpoint_header(path: str | Path) -> dict[str, Any]:
+    """The JSON header of a checkpoint (config, metadata, tensor table) without reading its payload.
+
+    For a quick look (how far a run got); the checksum is not verified, so resuming still goes through
+    :func:`read_checkpoint`. CheckpointError when the file has no readable mipslam header.
+    """
+    path = Path(path)
+    try:
+        with path.open("rb") as handle:
+            start = handle.read(len(MAGIC) + _LEN.size)
+            if len(start) < len(MAGIC) + _LEN.size or not start.startswith(MAGIC):
+                raise CheckpointError(f"{path}: not a mipslam checkpoint (bad magic bytes){_describe_foreign(start)}")
+            (header_length,) = _LEN.unpack_from(start, len(MAGIC))
+            if header_length > MAX_HEADER_BYTES:
+                raise CheckpointError(f"{path}: header length {header_length} is implausible; the file is corrupt")
+            raw = handle.read(header_length)
+    except OSError as exc:
+        raise CheckpointError(f"{path}: cannot read checkpoint ({exc.strerror or exc})") from exc
+    try:
+        header = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CheckpointError(f"{path}: unreadable header ({exc})") from exc
+    if not isinstance(header, dict):
+        raise CheckpointError(f"{path}: header is not a JSON object")
+    return header
 
 
 def read_checkpoint(path: str | Path, *, map_location: torch.device | str | None = None) -> Checkpoint:
@@ -310,6 +342,10 @@ def load_latest_checkpoint(folder: str | Path, *, current_config: Mapping[str, A
             continue
         if current_config is not None:
             check_config_compatible(checkpoint.config, current_config, free_keys=free_keys, source=path)
+            changed = free_config_differences(checkpoint.config, current_config, free_keys=free_keys)
+            if changed:
+                logger.info("resuming with settings that do not change results changed (%s); the run's config.yaml "
+                            "records the new values", "; ".join(changed))
         if problems:
             logger.warning("resuming from older checkpoint %s", path)
         return checkpoint
@@ -334,28 +370,45 @@ def _is_free(key: str, free_keys: Iterable[str]) -> bool:
     return any(key == free or key.startswith(free + ".") for free in free_keys)
 
 
-def config_differences(saved: Mapping[str, Any], current: Mapping[str, Any], *,
-                       free_keys: Iterable[str] = RESUME_FREE_KEYS) -> list[str]:
-    """Dotted keys whose values differ between two resolved configs, as ``"key: saved X, now Y"``.
+def _differing_keys(saved: Mapping[str, Any], current: Mapping[str, Any]) -> list[tuple[str, str, str]]:
+    """(dotted key, saved value, current value) of every differing key, values shown with repr.
 
-    Both sides are normalised through JSON (tuples become lists) before comparing; a key present
-    on one side only counts as different. Keys in ``free_keys`` (or below a section named there)
-    are ignored.
+    Both sides are normalised through JSON (tuples become lists) and their path keys made absolute
+    (a folder written relative and absolute is one folder). A key present on one side only differs, except a
+    key that a checkpoint written before the key existed lacks while the current config holds its default
+    (the older code behaved as that default).
     """
-    free_keys = tuple(free_keys)
-    flat_saved = _flatten(json.loads(json.dumps(saved)))
-    flat_current = _flatten(json.loads(json.dumps(current)))
+    flat_saved = _flatten(with_absolute_paths(json.loads(json.dumps(saved))))
+    flat_current = _flatten(with_absolute_paths(json.loads(json.dumps(current))))
+    flat_defaults = _flatten(json.loads(json.dumps(config_to_dict(Config()))))
     missing = object()
     differences = []
     for key in sorted(set(flat_saved) | set(flat_current)):
-        if _is_free(key, free_keys):
-            continue
         old, new = flat_saved.get(key, missing), flat_current.get(key, missing)
+        if old is missing and key in flat_defaults and new == flat_defaults[key]:
+            continue
         if old != new:
-            show_old = "<absent>" if old is missing else repr(old)
-            show_new = "<absent>" if new is missing else repr(new)
-            differences.append(f"{key}: checkpoint {show_old}, now {show_new}")
+            differences.append((key, "<absent>" if old is missing else repr(old),
+                                "<absent>" if new is missing else repr(new)))
     return differences
+
+
+def config_differences(saved: Mapping[str, Any], current: Mapping[str, Any], *,
+                       free_keys: Iterable[str] = RESUME_FREE_KEYS) -> list[str]:
+    """Keys that change results and differ between two resolved configs, as ``"key: checkpoint X, now Y"``.
+
+    Keys in ``free_keys`` (or below a section named there) are left out (:func:`free_config_differences`).
+    """
+    free_keys = tuple(free_keys)
+    return [f"{key}: checkpoint {old}, now {new}" for key, old, new in _differing_keys(saved, current)
+            if not _is_free(key, free_keys)]
+
+
+def free_config_differences(saved: Mapping[str, Any], current: Mapping[str, Any], *,
+                            free_keys: Iterable[str] = RESUME_FREE_KEYS) -> list[str]:
+    """The differing keys that cannot change results (``free_keys``), as ``"key: X -> Y"``."""
+    free_keys = tuple(free_keys)
+    return [f"{key}: {old} -> {new}" for key, old, new in _differing_keys(saved, current) if _is_free(key, free_keys)]
 
 
 def check_config_compatible(saved: Mapping[str, Any], current: Mapping[str, Any], *,
@@ -363,10 +416,13 @@ def check_config_compatible(saved: Mapping[str, Any], current: Mapping[str, Any]
     """Raise CheckpointError naming every differing key when resuming would not continue the same run."""
     differences = config_differences(saved, current, free_keys=free_keys)
     if differences:
+        source = Path(source)
+        run_dir = source.parent.parent if source.parent.name == "checkpoints" else "RUN_DIR"
         raise CheckpointError(
-            f"{source}: config differs from the one the run was started with ("
+            f"{source}: config differs from the one the run was started with in keys that change results ("
             + "; ".join(differences)
-            + "); resume with the run's own config.yaml or start a new run"
+            + f"); continue with the run's own config (mipslam run --resume {run_dir}, without a config or --set) "
+              "or start a new run with --out"
         )
 
 

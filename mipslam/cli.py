@@ -1,11 +1,12 @@
 """Command-line interface: the only place that parses arguments, configures logging and turns
 errors into exit codes (0 success, 1 unexpected failure, 2 usage/config/data error, 130 Ctrl-C).
 
-    mipslam run CONFIG [--preset P] [--set k=v]... [--out DIR] [--resume RUN_DIR]
+    mipslam run CONFIG [--preset P] [--set k=v]... [--out DIR [--overwrite]]
+    mipslam run --resume RUN_DIR [CONFIG] [--set k=v]...
     mipslam eval RUN_DIR [--frames all|keyframes|non_keyframes] [--scales 0.25,1] [--modes point,eaa] [--every K]
                  | --gt GT.txt --est EST.txt
-    mipslam export RUN_DIR --mesh mesh.ply [--voxel-size M]
-    mipslam synth --out DIR --format replica|tum --trajectory loop ...
+    mipslam export RUN_DIR --mesh mesh.ply [--voxel-size M] [--overwrite]
+    mipslam synth --out DIR --format replica|tum --trajectory loop ... [--overwrite]
     mipslam config CONFIG [--preset P] [--set k=v]...
     mipslam bench SEQUENCE_OR_CONFIG [--presets fast,balanced,accurate] [--sweep KEY=V1,V2]... [--repeat 3]
                   [--threads 2] [--max-frames N] [--set k=v]... [--out DIR] [--jobs N | --ray [ADDRESS]]
@@ -75,10 +76,15 @@ def _build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_ArgumentParser)
 
     run = sub.add_parser("run", help="run SLAM on a sequence described by a config file")
-    run.add_argument("config", type=Path, help="YAML config (e.g. configs/replica.yaml)")
+    run.add_argument("config", type=Path, nargs="?",
+                     help="YAML config (e.g. configs/replica.yaml); with --resume, default the run's own config.yaml")
     _add_config_args(run)
-    run.add_argument("--out", type=Path, help="run folder (default: runs/<config name>-<time>)")
-    run.add_argument("--resume", type=Path, metavar="RUN_DIR", help="continue the run in RUN_DIR from its last good checkpoint")
+    run.add_argument("--out", type=Path, metavar="DIR",
+                     help="run folder, new or empty (default: runs/<config name>-<time>)")
+    run.add_argument("--overwrite", action="store_true",
+                     help="replace the run already in --out (deletes only the files a run writes)")
+    run.add_argument("--resume", type=Path, metavar="RUN_DIR",
+                     help="continue the run in RUN_DIR from its last good checkpoint, with its own config")
     run.add_argument("--no-eval", action="store_true", help="skip the evaluation at the end")
 
     ev = sub.add_parser("eval", help="evaluate a run folder, or a pair of TUM trajectory files")
@@ -114,6 +120,7 @@ def _build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--mesh", type=Path, required=True, help="output mesh file (.ply, .obj, ...)")
     ex.add_argument("--voxel-size", type=float, default=None,
                     help="TSDF voxel size in metres (default: one rendered pixel at the median depth, in [0.005, 0.1])")
+    ex.add_argument("--overwrite", action="store_true", help="replace an existing mesh file")
     ex.add_argument("--sdf-trunc", type=float, default=None, help="TSDF truncation in metres (default 4 voxels)")
     ex.add_argument("--depth-max", type=float, default=None, help="ignore rendered depth beyond this (metres)")
     ex.add_argument("--scale", type=float, default=1.0, help="render at this scale of the mapping resolution")
@@ -126,6 +133,7 @@ def _build_parser() -> argparse.ArgumentParser:
 
     sy = sub.add_parser("synth", help="generate a synthetic RGB-D sequence with exact ground truth")
     sy.add_argument("--out", type=Path, required=True, help="output folder (must not exist or be empty)")
+    sy.add_argument("--overwrite", action="store_true", help="replace an earlier synthetic sequence in --out")
     sy.add_argument("--format", choices=["replica", "tum"], default="replica", help="folder layout")
     sy.add_argument("--trajectory", default="loop", help="camera trajectory name (loop, zoom, line, static)")
     sy.add_argument("--width", type=int, default=160)
@@ -178,23 +186,108 @@ def _cmd_config(args) -> int:
 
 def _cmd_run(args) -> int:
     from mipslam.config import load_config
-    from mipslam.pipeline import run_slam
+    from mipslam.datasets import make_sequence
+    from mipslam.io.run_folder import RunFolder, prepare_new_run_folder
+    from mipslam.pipeline import resolve_device, run_slam
 
-    config = load_config(args.config, preset=args.preset, overrides=args.overrides)
-    if args.resume is not None and args.out is not None and args.out.resolve() != args.resume.resolve():
-        raise _UsageError("mipslam run: --resume RUN_DIR continues in RUN_DIR; drop --out or give the same folder")
-    run_dir = args.resume or args.out or Path("runs") / f"{args.config.stem}-{time.strftime('%Y%m%d-%H%M%S')}"
+    if args.resume is not None:
+        if args.out is not None and not _same_path(args.out, args.resume):
+            raise _UsageError("mipslam run: --resume RUN_DIR continues in RUN_DIR; drop --out or give the same folder")
+        if args.overwrite:
+            raise _UsageError("mipslam run: --overwrite starts a run over, --resume continues it; give one of them")
+        folder = RunFolder(args.resume)
+        _check_resumable(folder, config_given=args.config is not None)
+        config = load_config(args.config or folder.config_yaml, preset=args.preset, overrides=args.overrides)
+        finished = _finished_run_message(folder, config, len(make_sequence(config.dataset)))
+        if finished:
+            print(finished)
+            return EXIT_OK
+        existed = True
+    else:
+        if args.config is None:
+            raise _UsageError("mipslam run: give a CONFIG file to start a run, or --resume RUN_DIR to continue one")
+        if args.config.is_dir() and (args.config / RunFolder.CHECKPOINTS).is_dir():
+            raise _UsageError(f"{args.config}: is a run folder, not a config file; continue it with "
+                              f"mipslam run --resume {args.config}")
+        config = load_config(args.config, preset=args.preset, overrides=args.overrides)
+        folder = RunFolder(args.out or _default_run_dir(args.config))
+        # What can be checked before a folder is made or an earlier run replaced: the dataset opens, the device exists.
+        make_sequence(config.dataset)
+        resolve_device(config.run.device)
+        existed = prepare_new_run_folder(folder.root, overwrite=args.overwrite)
     # What is alive now (modules, the config) lives for the whole run: keep it out of the cyclic collector's
     # full passes, each of which would rescan ~200k objects (0.15-0.2 s; 0.4 s of GC in 20 frames -> 0.1 s).
     gc.freeze()
-    summary = run_slam(config, run_dir, resume=args.resume is not None, evaluate=not args.no_eval)
+    try:
+        summary = run_slam(config, folder.root, resume=args.resume is not None, evaluate=not args.no_eval)
+    except BaseException:
+        if args.resume is None and folder.remove_if_unstarted(remove_root=not existed):
+            log.debug("removed %s: the run stopped before its first checkpoint", folder.root)
+        raise
     print(summary.describe())
     return EXIT_OK
+
+
+def _same_path(a: Path, b: Path) -> bool:
+    return a.expanduser().resolve() == b.expanduser().resolve()
+
+
+def _default_run_dir(config: Path) -> Path:
+    """``runs/<config name>-<time>``, with ``-2``, ``-3`` ... when runs start within the same second."""
+    base = Path("runs") / f"{config.stem}-{time.strftime('%Y%m%d-%H%M%S')}"
+    candidate, n = base, 1
+    while candidate.exists():
+        n += 1
+        candidate = base.with_name(f"{base.name}-{n}")
+    return candidate
+
+
+def _check_resumable(folder, *, config_given: bool) -> None:
+    """A folder that --resume can continue: it exists and holds a checkpoint (and its config.yaml when no
+    config is given); else a one-line error saying what to type instead."""
+    contents = folder.inspect()
+    if not contents.exists:
+        raise _UsageError(f"{folder.root}: no such run folder to resume; check the path, or start a new run with "
+                          f"mipslam run CONFIG --out {folder.root}")
+    if not contents.is_folder:
+        raise _UsageError(f"{folder.root}: is not a run folder (not a folder at all); --resume takes the folder a "
+                          "run wrote")
+    if not contents.checkpoints:
+        raise _UsageError(f"{folder.root}: no checkpoint to resume from (the run stopped before its first one, or "
+                          f"this is not a run folder); start it again with mipslam run CONFIG --out {folder.root}")
+    if not config_given and not folder.config_yaml.is_file():
+        raise _UsageError(f"{folder.config_yaml}: missing; give the run's config: mipslam run CONFIG --resume "
+                          f"{folder.root}")
+
+
+def _finished_run_message(folder, config, total_frames: int) -> str | None:
+    """A line saying the run is already complete (every frame of the sequence checkpointed and the final
+    outputs written after that checkpoint), or None when resuming has work to do. The config must still be
+    compatible: resuming a finished run with changed settings is the same error as resuming any run."""
+    from mipslam.checkpoint import check_config_compatible, read_checkpoint_header
+    from mipslam.config import config_to_dict
+    from mipslam.errors import CheckpointError
+
+    latest = folder.inspect().checkpoints[-1]
+    try:
+        header = read_checkpoint_header(latest)
+        done = int((header.get("metadata") or {}).get("next_frame", -1))
+    except (CheckpointError, TypeError, ValueError):
+        return None  # the resume reads the checkpoints properly and reports what is wrong
+    check_config_compatible(header.get("config") or {}, config_to_dict(config), source=latest)
+    outputs = (folder.traj_est, folder.keyframes, folder.map_ply)
+    written = all(p.is_file() and p.stat().st_mtime >= latest.stat().st_mtime for p in outputs)
+    if done < total_frames or not written:
+        return None
+    return (f"{folder.root}: the run is already complete ({done} of {total_frames} frames); nothing to do. "
+            f"Evaluate it again with: mipslam eval {folder.root}; or start a new run with --out")
 
 
 def _cmd_eval(args) -> int:
     if args.run_dir is not None and (args.gt or args.est):
         raise _UsageError("mipslam eval: give either RUN_DIR or --gt and --est, not both")
+    if args.out is not None:  # (the run's own metrics.json is derived: evaluating again replaces it)
+        _check_replaceable_metrics(args.out)
     if args.run_dir is None:
         if not (args.gt and args.est):
             raise _UsageError("mipslam eval: give a RUN_DIR, or both --gt GT.txt and --est EST.txt")
@@ -226,6 +319,22 @@ def _cmd_eval(args) -> int:
         kept = f" (evaluation '{label}'; the run's own metrics.json is unchanged)" if label and args.out is None else ""
         print(f"metrics written to {out}{kept}")
     return EXIT_OK
+
+
+def _check_replaceable_metrics(path: Path) -> None:
+    """Metrics are written over an earlier metrics file (re-evaluating is the point), never over anything else
+    (a trajectory or a config given to --out by mistake)."""
+    if not path.exists():
+        return
+    if path.is_dir():
+        raise _UsageError(f"{path}: is a folder; give --out a file name such as {path / 'metrics.json'}")
+    try:
+        earlier = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        earlier = None
+    if not (isinstance(earlier, dict) and ("trajectory" in earlier or "ate" in earlier)):
+        raise _UsageError(f"{path}: exists and is not a metrics file written by mipslam eval; it is left as it is: "
+                          "choose another --out")
 
 
 def _render_options(args):
@@ -286,10 +395,15 @@ def _format_metrics(metrics: dict) -> str:
 def _cmd_synth(args) -> int:
     import data_synth
 
+    if not args.overwrite and args.out.is_dir() and any(args.out.iterdir()):
+        earlier = (args.out / "synth.json").is_file()
+        raise _UsageError(f"{args.out}: output folder is not empty; choose another --out"
+                          + (" or replace the synthetic sequence there with --overwrite" if earlier else ""))
     out = data_synth.generate(
         args.out, layout=args.format, trajectory=args.trajectory, width=args.width, height=args.height,
         frames=args.frames, seed=args.seed, supersample=args.supersample, laps=args.laps,
         depth_noise=args.depth_noise, depth_holes=args.depth_holes, exposure_jitter=args.exposure_jitter,
+        overwrite=args.overwrite,
     )
     print(f"synthetic {args.format} sequence written to {out}")
     return EXIT_OK
@@ -298,11 +412,28 @@ def _cmd_synth(args) -> int:
 def _cmd_export(args) -> int:
     from mipslam.export import export_mesh
 
+    _check_mesh_target(args.mesh, args.run_dir, overwrite=args.overwrite)
     result = export_mesh(args.run_dir, args.mesh, voxel_size=args.voxel_size, sdf_trunc=args.sdf_trunc,
                          depth_max=args.depth_max, scale=args.scale, mode=args.mode, method=args.tsdf,
                          memory_limit_mb=args.memory_limit)
     print(result.describe())
     return EXIT_OK
+
+
+def _check_mesh_target(mesh: Path, run_dir: Path, *, overwrite: bool) -> None:
+    """A mesh never replaces a file of the run it comes from (its map.ply), a folder, or, without
+    ``--overwrite``, any existing file."""
+    from mipslam.io.run_folder import RUN_ENTRIES
+
+    if not run_dir.is_dir():
+        return  # export_mesh names the missing run folder
+    if _same_path(mesh.parent, run_dir) and mesh.name in RUN_ENTRIES:
+        raise _UsageError(f"{mesh}: is one of the run's own files; give the mesh another name, e.g. "
+                          f"{mesh.with_name('mesh.ply')}")
+    if mesh.is_dir():
+        raise _UsageError(f"{mesh}: is a folder; give --mesh a file name such as {mesh / 'mesh.ply'}")
+    if mesh.exists() and not overwrite:
+        raise _UsageError(f"{mesh}: exists; replace it with --overwrite or choose another --mesh")
 
 
 def _cmd_bench(args) -> int:
@@ -337,6 +468,11 @@ def _configure_logging(debug: bool, quiet: bool) -> None:
     logging.getLogger("data_synth").setLevel(level)
 
 
+def _one_line(exc: BaseException) -> str:
+    """The message on one line (a library message quoting a user's text with a line break in it, say)."""
+    return " | ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     debug = "--debug" in argv
@@ -356,7 +492,7 @@ def main(argv: list[str] | None = None) -> int:
     except MipslamError as exc:
         if debug:
             log.exception("failed")
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
@@ -364,7 +500,8 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # the last line of defence: one line, traceback only with --debug
         if debug:
             raise
-        print(f"error: unexpected {type(exc).__name__}: {exc} (rerun with --debug for the traceback)", file=sys.stderr)
+        print(f"error: unexpected {type(exc).__name__}: {_one_line(exc)} (rerun with --debug for the traceback)",
+              file=sys.stderr)
         return EXIT_FAILURE
 
 

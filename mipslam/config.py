@@ -32,6 +32,11 @@ CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 PRESETS = ("fast", "balanced", "accurate")
 
 
+def _quoted(text: str) -> str:
+    """``'text'`` for a message, escaped (``repr``) when it holds a line break or another unprintable character."""
+    return f"'{text}'" if text.isprintable() else repr(text)
+
+
 def _check(cond: bool, key: str, message: str) -> None:
     if not cond:
         raise ConfigError(f"config key '{key}': {message}")
@@ -434,7 +439,13 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
         raise ConfigError(f"config key '{key}': expected an integer, got {value!r}")
     if tp is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
+            try:
+                number = float(value)
+            except OverflowError:  # an integer beyond float range
+                number = math.inf
+            if math.isfinite(number):
+                return number
+            raise ConfigError(f"config key '{key}': expected a finite number, got {value!r}")
         if isinstance(value, str):
             # YAML 1.1 reads "5e-4" (no dot in the mantissa) as a string; users mean the number.
             try:
@@ -472,7 +483,7 @@ def _build(cls: type, data: Mapping[str, Any], prefix: str) -> Any:
                 raise ConfigError(f"config key '{prefix}{key}': {RETIRED_KEYS[f'{prefix}{key}']}")
             near = difflib.get_close_matches(str(key), names, n=1, cutoff=0.5)
             hint = f"; did you mean '{prefix}{near[0]}'?" if near else f"; valid keys: {', '.join(names)}"
-            raise ConfigError(f"unknown config key '{prefix}{key}'{hint}")
+            raise ConfigError(f"unknown config key {_quoted(f'{prefix}{key}')}{hint}")
     kwargs = {}
     for name in names:
         if name not in data:
@@ -520,36 +531,101 @@ def _deep_merge(base: dict[str, Any], override: Mapping[str, Any]) -> dict[str, 
     return out
 
 
-def _read_yaml(path: Path) -> dict[str, Any]:
+def _shown(path: Path) -> str:
+    """A path for a one-line message (escaped when its name holds a line break or another unprintable character)."""
+    text = str(path)
+    return text if text.isprintable() else repr(text)
+
+
+def _missing_file_message(path: Path) -> str:
+    """'config file not found', with the nearest YAML file of that folder when there is a likely one."""
+    folder = path.parent
+    if not folder.is_dir():
+        return f"{_shown(path)}: config file not found (folder {_shown(folder)} does not exist)"
     try:
-        text = path.read_text(encoding="utf-8")
+        names = sorted(p.name for p in folder.iterdir() if p.suffix.lower() in (".yaml", ".yml") and p.is_file())
+    except OSError:
+        names = []
+    near = difflib.get_close_matches(path.name, names, n=1, cutoff=0.6)
+    if near:
+        return f"{_shown(path)}: config file not found; did you mean {_shown(folder / near[0])}?"
+    listing = f" (YAML files there: {', '.join(map(_shown, names[:6]))})" if names else ""
+    return f"{_shown(path)}: config file not found{listing}"
+
+
+def _yaml_error_message(path: Path, exc: Exception) -> str:
+    """One line naming the file, the line and column (1-based) where PyYAML gives them, and the problem."""
+    if isinstance(exc, RecursionError):
+        return f"{_shown(path)}: invalid YAML (nested too deeply)"
+    if isinstance(exc, yaml.MarkedYAMLError):
+        mark = exc.problem_mark or exc.context_mark
+        where = f":{mark.line + 1}:{mark.column + 1}" if mark is not None else ""
+        problem = " ".join("; ".join(str(part) for part in (exc.context, exc.problem) if part).split())
+        return f"{_shown(path)}{where}: invalid YAML ({problem or type(exc).__name__})"
+    # a value PyYAML recognised but could not build (e.g. the date 2001-13-45), or another YAMLError
+    detail = " ".join(str(exc).split()) or type(exc).__name__
+    return f"{_shown(path)}: invalid YAML ({detail})"
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
+    if path.is_dir():
+        hint = f"; the run's config is {_shown(path / 'config.yaml')}" if (path / "config.yaml").is_file() else ""
+        raise ConfigError(f"{_shown(path)}: is a folder, not a YAML config file{hint}")
+    try:
+        raw = path.read_bytes()
     except FileNotFoundError:
-        raise ConfigError(f"{path}: config file not found") from None
+        raise ConfigError(_missing_file_message(path)) from None
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read config file ({exc.strerror})") from None
+        raise ConfigError(f"{_shown(path)}: cannot read config file ({exc.strerror or exc})") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{_shown(path)}: not a YAML text file (byte 0x{raw[exc.start]:02x} at offset {exc.start} "
+                          "is not UTF-8); give a .yaml config such as configs/replica.yaml") from None
+    if "\x00" in text:
+        raise ConfigError(f"{_shown(path)}: not a YAML text file (it contains NUL bytes); give a .yaml config such as "
+                          "configs/replica.yaml")
     try:
         data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: invalid YAML ({str(exc).splitlines()[0]})") from None
+    except (yaml.YAMLError, ValueError, TypeError, OverflowError, RecursionError) as exc:
+        raise ConfigError(_yaml_error_message(path, exc)) from None
     if data is None:
         return {}
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: the top level must be a mapping of sections, got {type(data).__name__}")
+        raise ConfigError(f"{_shown(path)}: the top level must be a mapping of sections, got {type(data).__name__}")
     return data
 
 
 # Keys holding file-system paths: a relative path in a YAML file is relative to that file, so a
-# config works from any working directory (a relative path given with --set is relative to the cwd).
+# config works from any working directory; one given with --set is relative to the working directory.
+# After loading, every such path is absolute (and normalised), so a resolved config written out
+# (a run's config.yaml) means the same wherever it is read, and one folder is one value.
 _PATH_KEYS = (("dataset", "path"),)
 
 
-def _resolve_paths(data: dict[str, Any], base: Path) -> None:
+def _absolute_path(value: str, base: Path) -> str:
+    """``value`` (``~`` expanded) made absolute against ``base`` and normalised (``.``, ``..``, links)."""
+    path = Path(value).expanduser()
+    try:
+        return str((path if path.is_absolute() else base / path).resolve())
+    except (OSError, RuntimeError, ValueError) as exc:  # a NUL byte, a symlink loop
+        raise ConfigError(f"config path {value!r}: not a usable path ({exc})") from None
+
+
+def _resolve_paths(data: Mapping[str, Any], base: Path) -> None:
+    """Make the path keys of ``data`` (nested dict, changed in place) absolute against ``base``."""
     for section, key in _PATH_KEYS:
         block = data.get(section)
         if isinstance(block, dict) and isinstance(block.get(key), str) and block[key]:
-            value = Path(block[key]).expanduser()
-            if not value.is_absolute():
-                block[key] = str((base / value).resolve())
+            block[key] = _absolute_path(block[key], base)
+
+
+def with_absolute_paths(data: Mapping[str, Any], base: str | Path | None = None) -> dict[str, Any]:
+    """A copy of a plain config dict whose path keys are absolute (relative ones against ``base``,
+    default the working directory). Used to write and to compare resolved configs."""
+    out = {key: dict(value) if isinstance(value, Mapping) else value for key, value in data.items()}
+    _resolve_paths(out, Path.cwd() if base is None else Path(base))
+    return out
 
 
 def load_yaml_tree(path: str | Path, _stack: tuple[Path, ...] = ()) -> dict[str, Any]:
@@ -557,10 +633,13 @@ def load_yaml_tree(path: str | Path, _stack: tuple[Path, ...] = ()) -> dict[str,
 
     Relative paths under ``dataset.path`` are resolved against the directory of the file that names them.
     """
-    path = Path(path).resolve()
+    try:
+        path = Path(path).resolve()
+    except (OSError, RuntimeError, ValueError) as exc:  # a NUL byte in the name, a symlink loop
+        raise ConfigError(f"config file {str(path)!r}: not a usable path ({exc})") from None
     if path in _stack:
-        cycle = " -> ".join(str(p) for p in (*_stack, path))
-        raise ConfigError(f"{path}: cyclic inherit_from ({cycle}); remove one of the links")
+        cycle = " -> ".join(_shown(p) for p in (*_stack, path))
+        raise ConfigError(f"{_shown(path)}: cyclic inherit_from ({cycle}); remove one of the links")
     data = _read_yaml(path)
     _resolve_paths(data, path.parent)
     parents = data.pop("inherit_from", None)
@@ -569,7 +648,7 @@ def load_yaml_tree(path: str | Path, _stack: tuple[Path, ...] = ()) -> dict[str,
     if isinstance(parents, str):
         parents = [parents]
     if not isinstance(parents, list) or not all(isinstance(p, str) for p in parents):
-        raise ConfigError(f"{path}: inherit_from must be a file name or a list of file names")
+        raise ConfigError(f"{_shown(path)}: inherit_from must be a file name or a list of file names")
     merged: dict[str, Any] = {}
     for parent in parents:
         merged = _deep_merge(merged, load_yaml_tree(path.parent / parent, (*_stack, path)))
@@ -579,15 +658,16 @@ def load_yaml_tree(path: str | Path, _stack: tuple[Path, ...] = ()) -> dict[str,
 def parse_override(text: str) -> tuple[list[str], Any]:
     """``'tracking.iterations=30'`` -> (['tracking', 'iterations'], 30); the value is read as YAML."""
     if "=" not in text:
-        raise ConfigError(f"override '{text}' must look like section.key=value")
+        raise ConfigError(f"override {_quoted(text)} must look like section.key=value")
     key, raw = text.split("=", 1)
     parts = [p for p in key.strip().split(".")]
     if len(parts) < 2 or not all(parts):
-        raise ConfigError(f"override '{text}': the key must name a section and a key, e.g. tracking.iterations=30")
+        raise ConfigError(f"override {_quoted(text)}: the key must name a section and a key, e.g. "
+                          "tracking.iterations=30")
     try:
         value = yaml.safe_load(raw) if raw.strip() else ""
-    except yaml.YAMLError:
-        value = raw
+    except (yaml.YAMLError, ValueError, TypeError, OverflowError, RecursionError):
+        value = raw  # not a YAML value: the text itself (the type check then names the key)
     return parts, value
 
 
@@ -613,16 +693,22 @@ def preset_path(name: str) -> Path:
 
 
 def load_config(path: str | Path | None = None, *, preset: str | None = None, overrides: list[str] | None = None) -> Config:
-    """Resolve a config: file (with inherit_from) -> preset overlay -> ``--set`` overrides."""
+    """Resolve a config: file (with inherit_from) -> preset overlay -> ``--set`` overrides.
+
+    Path keys come out absolute: relative to the YAML file that names them, or to the working directory
+    for ``--set``. Every problem is a ConfigError naming the file (line and column for YAML syntax).
+    """
     data: dict[str, Any] = load_yaml_tree(path) if path is not None else {}
     if preset:
         data = _deep_merge(data, load_yaml_tree(preset_path(preset)))
     data = apply_overrides(data, list(overrides or []))
+    _resolve_paths(data, Path.cwd())
     return config_from_dict(data)
 
 
 def config_to_yaml(config: Config) -> str:
-    return yaml.safe_dump(config_to_dict(config), sort_keys=False)
+    """The resolved config as YAML, path keys absolute (so the text means the same wherever it is read)."""
+    return yaml.safe_dump(with_absolute_paths(config_to_dict(config)), sort_keys=False)
 
 
 def save_config(config: Config, path: str | Path) -> None:

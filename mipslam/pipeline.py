@@ -124,7 +124,8 @@ def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evalu
     metrics = _write_outputs(run, config, evaluate)
     return RunSummary(run.folder.root, state.next_frame, len(state.keyframe_frames),
                       sum(not f.tracked for f in state.frames), len(state.gaussian_map),
-                      time.perf_counter() - started if state.next_frame > start_frame else 0.0, metrics)
+                      time.perf_counter() - started if state.next_frame > start_frame else 0.0, metrics,
+                      new_frames=state.next_frame - start_frame)
 
 
 def first_pose(sequence: RGBDSequence) -> torch.Tensor:

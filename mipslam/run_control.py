@@ -10,7 +10,6 @@ interruption it writes the checkpoint a resume needs. None of it changes a resul
 from __future__ import annotations
 
 import logging
-import math
 import signal
 import sys
 import time
@@ -47,12 +46,14 @@ class RunSummary:
     keyframes: int
     flagged: int
     gaussians: int
-    seconds: float
+    seconds: float  # this session's time from its first frame on
     metrics: dict | None
+    new_frames: int = 0  # frames this session processed (fewer than ``frames`` after a resume)
 
     def describe(self) -> str:
-        fps = self.frames / self.seconds if self.seconds > 0 else math.nan
-        text = (f"run folder {self.run_dir}: {self.frames} frames ({fps:.2f} frames/s this session), "
+        rate = (f"{self.new_frames / self.seconds:.2f} frames/s this session" if self.seconds > 0 and self.new_frames
+                else "no new frames this session")
+        text = (f"run folder {self.run_dir}: {self.frames} frames ({rate}), "
                 f"{self.keyframes} keyframes, {self.gaussians} Gaussians, {self.flagged} frames flagged")
         ate = (self.metrics or {}).get("trajectory", {}).get("ate")
         if ate:

@@ -22,9 +22,11 @@ from mipslam.checkpoint import (
     capture_rng_state,
     check_config_compatible,
     config_differences,
+    free_config_differences,
     list_checkpoints,
     load_latest_checkpoint,
     read_checkpoint,
+    read_checkpoint_header,
     restore_rng_state,
     save_checkpoint,
     select_prefix,
@@ -34,7 +36,7 @@ from mipslam.checkpoint import (
 from mipslam.config import Config, config_from_dict, config_to_dict
 from mipslam.errors import CheckpointError, MipslamError
 from mipslam.gaussians import GaussianMap, GaussianOptimizer, GaussianParameters
-from mipslam.io.run_folder import RunFolder, write_json_atomic, write_text_atomic
+from mipslam.io.run_folder import RUN_ENTRIES, RunFolder, prepare_new_run_folder, write_json_atomic, write_text_atomic
 
 CONFIG = config_to_dict(Config())
 
@@ -232,6 +234,43 @@ def test_incompatible_config_is_refused_naming_the_keys(tmp_path):
     check_config_compatible(CONFIG, dict(CONFIG))
 
 
+def test_config_comparison_takes_one_folder_written_two_ways_as_one_path(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "seq").mkdir()
+    saved = {"dataset": {"path": str(tmp_path / "seq")}, "run": {"threads": 0}}
+    for same in ("seq", "./seq/", str(tmp_path / "seq") + "/", str(tmp_path / "x" / ".." / "seq")):
+        assert config_differences(saved, {"dataset": {"path": same}, "run": {"threads": 0}}) == [], same
+    assert config_differences(saved, {"dataset": {"path": "other"}, "run": {"threads": 0}}) == [
+        f"dataset.path: checkpoint {str(tmp_path / 'seq')!r}, now {str(tmp_path / 'other')!r}"]
+    # keys that cannot change results may differ; they are reported, not refused
+    changed = {"dataset": {"path": "seq"}, "run": {"threads": 2}}
+    assert config_differences(saved, changed) == []
+    assert free_config_differences(saved, changed) == ["run.threads: 0 -> 2"]
+
+
+def test_changed_free_settings_are_logged_on_resume(tmp_path, caplog):
+    save_checkpoint(tmp_path, {"x": torch.ones(1)}, {}, config=CONFIG)
+    current = config_to_dict(config_from_dict({"run": {"threads": 1, "release_memory_every": 0}}))
+    with caplog.at_level(logging.INFO, logger="mipslam.checkpoint"):
+        load_latest_checkpoint(tmp_path, current_config=current)
+    assert "run.threads: 0 -> 1" in caplog.text and "run.release_memory_every: 50 -> 0" in caplog.text
+
+
+def test_the_header_is_read_without_the_payload(tmp_path):
+    path = save_checkpoint(tmp_path, sample_tensors(), {"next_frame": 7}, config=CONFIG)
+    header = read_checkpoint_header(path)
+    assert header["metadata"] == {"next_frame": 7} and header["config"] == CONFIG
+    with path.open("r+b") as handle:  # damage in the payload does not hide the header (the full read refuses it)
+        handle.seek(-40, os.SEEK_END)
+        handle.write(b"\xff" * 8)
+    assert read_checkpoint_header(path)["metadata"]["next_frame"] == 7
+    with pytest.raises(CheckpointError, match="checksum"):
+        read_checkpoint(path)
+    (tmp_path / "other.ckpt").write_bytes(pickle.dumps({"a": 1}))
+    with pytest.raises(CheckpointError, match="pickle"):
+        read_checkpoint_header(tmp_path / "other.ckpt")
+
+
 def test_rng_states_are_restored_exactly_through_a_checkpoint(tmp_path):
     generator = torch.Generator().manual_seed(123)
     torch.manual_seed(1), np.random.seed(2), random.seed(3)
@@ -345,3 +384,68 @@ def test_stale_temporaries_are_cleaned(tmp_path):
     keep.write_bytes(b"complete")
     assert sorted(run.remove_stale_temporaries()) == sorted(stale)
     assert keep.exists() and not any(p.exists() for p in stale)
+
+
+def _finished_run(root) -> RunFolder:
+    run = RunFolder(root).create()
+    save_checkpoint(run.checkpoints, {"x": torch.ones(1)}, {"next_frame": 3}, config=CONFIG)
+    for name in sorted(RUN_ENTRIES - {"checkpoints", "report"}):
+        (run.root / name).write_text(name)
+    (run.report / "trajectory.png").write_bytes(b"png")
+    return run
+
+
+def test_a_new_run_goes_only_where_nothing_would_be_lost(tmp_path):
+    assert prepare_new_run_folder(tmp_path / "new") is False and not (tmp_path / "new").exists()
+    (tmp_path / "empty").mkdir()
+    assert prepare_new_run_folder(tmp_path / "empty") is True
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(MipslamError, match="not a folder"):
+        prepare_new_run_folder(tmp_path / "file", overwrite=True)
+    run = _finished_run(tmp_path / "run")
+    with pytest.raises(MipslamError, match=r"holds a finished run \(1 checkpoint.*--resume .*--overwrite.*--out"):
+        prepare_new_run_folder(run.root)
+    assert RunFolder(run.root).inspect().foreign == ()
+    # foreign files: refused even with overwrite, and nothing is deleted
+    for foreign in (run.root / "mesh.ply", run.checkpoints / "notes.txt", run.report / "sub"):
+        foreign.mkdir() if foreign.name == "sub" else foreign.write_text("mine")
+        with pytest.raises(MipslamError, match="did not make"):
+            prepare_new_run_folder(run.root, overwrite=True)
+        assert foreign.exists() and len(list_checkpoints(run.checkpoints)) == 1
+        foreign.rmdir() if foreign.is_dir() else foreign.unlink()
+    (run.root / ".map.ply.abc.tmp").write_text("partial")
+    assert prepare_new_run_folder(run.root, overwrite=True) is True
+    assert run.root.is_dir() and list(run.root.iterdir()) == []
+    # a config.yaml in a folder without checkpoints/ is the user's own file
+    own = tmp_path / "own"
+    own.mkdir()
+    (own / "config.yaml").write_text("mine")
+    with pytest.raises(MipslamError, match="holds no mipslam run"):
+        prepare_new_run_folder(own, overwrite=True)
+    # the remains of a run that stopped before its first checkpoint are not a run
+    remains = RunFolder(tmp_path / "remains").create()
+    remains.config_yaml.write_text("run: {}")
+    assert prepare_new_run_folder(remains.root) is True and list(remains.root.iterdir()) == []
+
+
+def test_an_unstarted_run_removes_only_what_it_created(tmp_path):
+    run = RunFolder(tmp_path / "run").create()
+    run.config_yaml.write_text("run: {}")
+    assert run.remove_if_unstarted(remove_root=True) and not run.root.exists()
+    run = RunFolder(tmp_path / "kept").create()
+    (run.report / "mine.txt").write_text("x")
+    assert not run.remove_if_unstarted(remove_root=True)
+    assert (run.report / "mine.txt").exists() and not run.checkpoints.exists()
+    started = _finished_run(tmp_path / "started")
+    assert not started.remove_if_unstarted(remove_root=True) and started.config_yaml.exists()
+
+
+def test_a_key_newer_than_the_checkpoint_is_no_difference_at_its_default():
+    """A checkpoint written before a config key existed resumes while the key holds its default (the older
+    code behaved as the default); any other value of the new key is a difference that changes results."""
+    current = config_to_dict(Config())
+    saved = json.loads(json.dumps(current))
+    del saved["tracking"]["running_loss_momentum"]
+    assert config_differences(saved, current) == []
+    current["tracking"]["running_loss_momentum"] = 0.5
+    assert config_differences(saved, current) == ["tracking.running_loss_momentum: checkpoint <absent>, now 0.5"]

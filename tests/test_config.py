@@ -1,6 +1,8 @@
 """Config: YAML + inherit_from + presets + --set, typed and validated, safe to load."""
 from __future__ import annotations
 
+import inspect
+import sys
 from pathlib import Path
 
 import pytest
@@ -162,8 +164,84 @@ def test_relative_dataset_path_is_relative_to_the_file(tmp_path):
     sub.mkdir()
     (sub / "c.yaml").write_text("dataset:\n  kind: replica\n  path: ../data/seq\n")
     assert load_yaml_tree(sub / "c.yaml")["dataset"]["path"] == str((tmp_path / "data" / "seq").resolve())
-    # A relative path given on the command line stays relative to the working directory.
-    assert load_config(sub / "c.yaml", overrides=["dataset.path=other"]).dataset.path == "other"
+    # A relative path given on the command line is relative to the working directory; both come out absolute.
+    assert load_config(sub / "c.yaml", overrides=["dataset.path=other"]).dataset.path == str(Path.cwd() / "other")
+
+
+def test_a_written_config_means_the_same_wherever_it_is_read(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    config = load_config(CONFIGS / "synthetic.yaml", overrides=["dataset.path=data/seq/"])
+    assert config.dataset.path == str(tmp_path / "data" / "seq")
+    run_dir = tmp_path / "runs" / "a"
+    run_dir.mkdir(parents=True)
+    (run_dir / "config.yaml").write_text(config_to_yaml(config))
+    monkeypatch.chdir(run_dir)
+    assert load_config(run_dir / "config.yaml") == config
+    # a config built in code with a relative path is written with the path it meant in this process
+    relative = config_from_dict({"dataset": {"path": "seq"}})
+    assert f"path: {run_dir / 'seq'}" in config_to_yaml(relative)
+
+
+def test_a_file_that_is_not_yaml_text(tmp_path):
+    png = tmp_path / "config.png"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR")
+    with pytest.raises(ConfigError, match=r"config.png: not a YAML text file \(byte 0x89 at offset 0"):
+        load_config(png)
+    nul = tmp_path / "nul.yaml"
+    nul.write_bytes(b"run:\n  seed: 1\x00\n")
+    with pytest.raises(ConfigError, match="not a YAML text file .it contains NUL bytes"):
+        load_config(nul)
+    with pytest.raises(ConfigError, match="is a folder, not a YAML config file"):
+        load_config(tmp_path)
+
+
+@pytest.mark.parametrize("text, where, problem", [
+    ("tracking:\n  iterations: 3\n   alpha_color: 0.5\n", ":3:15", "mapping values are not allowed"),
+    ("tracking: [1, 2\nmapping: {}\n", ":2:8", "expected ',' or ']'"),
+    ("run:\n\tseed: 1\n", ":2:1", "found character '\\t'"),
+])
+def test_yaml_syntax_errors_give_line_and_column(tmp_path, text, where, problem):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    message = str(info.value)
+    assert message.startswith(f"{path}{where}: invalid YAML (") and problem in message and "\n" not in message
+
+
+def test_values_yaml_cannot_build_are_config_errors(tmp_path):
+    path = tmp_path / "date.yaml"
+    path.write_text("run:\n  seed: 2001-13-45\n")  # a date with month 13
+    with pytest.raises(ConfigError, match="date.yaml: invalid YAML .month must be in 1..12"):
+        load_config(path)
+    path.write_text("[" * 400)  # deeper than the (here lowered) recursion limit: PyYAML's parser recurses
+    limit = sys.getrecursionlimit()
+    sys.setrecursionlimit(len(inspect.stack()) + 300)
+    try:
+        with pytest.raises(ConfigError, match="nested too deeply"):
+            load_config(path)
+    finally:
+        sys.setrecursionlimit(limit)
+
+
+@pytest.mark.parametrize("override", ["tracking.lr_translation=.nan", "tracking.lr_translation=.inf",
+                                      "tracking.lr_translation=-.inf", f"tracking.lr_translation={10 ** 400}"])
+def test_non_finite_numbers_are_refused(override):
+    with pytest.raises(ConfigError, match="tracking.lr_translation"):
+        load_config(overrides=[override])
+
+
+def test_a_misspelt_file_name_suggests_the_nearest_file(tmp_path):
+    with pytest.raises(ConfigError, match=r"replca.yaml: config file not found; did you mean .*configs/replica.yaml\?"):
+        load_config(CONFIGS / "replca.yaml")
+    (tmp_path / "child.yaml").write_text("inherit_from: parnet.yaml\n")
+    (tmp_path / "parent.yaml").write_text("run:\n  seed: 3\n")
+    with pytest.raises(ConfigError, match=r"parnet.yaml: config file not found; did you mean .*parent.yaml\?"):
+        load_config(tmp_path / "child.yaml")
+    with pytest.raises(ConfigError, match=r"folder .*no_such_folder does not exist"):
+        load_config(tmp_path / "no_such_folder" / "c.yaml")
+    with pytest.raises(ConfigError, match=r"zzz.yaml: config file not found \(YAML files there: child.yaml, parent.yaml\)"):
+        load_config(tmp_path / "zzz.yaml")
 
 
 def test_config_objects_are_frozen():

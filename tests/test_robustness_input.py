@@ -316,11 +316,13 @@ def snapshot(folder: Path) -> dict[str, bytes]:
     "traj_est.txt",
 ])
 def test_disk_full_while_writing_outputs(tmp_path, finished_run, tiny_sequence, capsys, monkeypatch, victim):
-    """``--resume`` of a finished run rewrites its checkpoint and outputs; the disk fills up while one of
-    them is written: exit 2, one line naming that file, its previous complete version byte-identical,
-    no temporary file left behind, and the run still resumable."""
+    """``--resume`` of a run killed while writing its outputs (after its final checkpoint) rewrites its
+    checkpoint and outputs; the disk fills up while one of them is written: exit 2, one line naming that
+    file, its previous complete version byte-identical, no temporary file left behind, and the run still
+    resumable."""
     run_dir = tmp_path / "run"
     shutil.copytree(finished_run, run_dir)
+    (run_dir / "keyframes.txt").unlink()  # an output missing: the run is not complete, so --resume has work to do
     before = snapshot(run_dir)
     checkpoints = list_checkpoints(run_dir / "checkpoints")
     if victim == "checkpoint":

@@ -11,7 +11,13 @@ Layout (DESIGN.md, "Outputs of a run")::
     RUN/metrics.json     evaluation
     RUN/timings.json     per stage and per frame timings
     RUN/loops.json       accepted loop closures
+    RUN/run.json         what the evaluation needs to know about the run (sequence, intrinsics)
+    RUN/frames.json      per-frame records
     RUN/report/          plots
+
+A new run goes only into a folder that does not exist or is empty (:func:`prepare_new_run_folder`):
+a folder holding a run is continued (``--resume``) or, when asked (``--overwrite``), emptied of the
+entries above and nothing else; a folder holding anything else is never touched.
 
 Atomic write protocol (used for every file above): the bytes go to a temporary file in the
 *same* folder (so the rename never crosses a file system), the file is flushed and fsync'ed,
@@ -26,7 +32,10 @@ import json
 import logging
 import math
 import os
+import re
+import shutil
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO, Iterator
 
@@ -241,6 +250,58 @@ class RunFolder:
         os.close(fd)
         os.unlink(probe)
 
+    # --------------------------------------------------------------------------- what the folder holds
+    def inspect(self) -> "RunFolderContents":
+        """What the folder holds: nothing, the remains of a run that never checkpointed, a run, or other files."""
+        if not self.root.exists():
+            return RunFolderContents(self.root, exists=False)
+        if not self.root.is_dir():
+            return RunFolderContents(self.root, exists=True, is_folder=False)
+        entries = sorted(self.root.iterdir())
+        # Every run makes checkpoints/ first: without it the files here (a config.yaml, a map.ply) are someone else's.
+        is_run = self.checkpoints.is_dir() and not self.checkpoints.is_symlink()
+        foreign = tuple(p.name for p in entries
+                        if not (_is_temporary(p.name) or (is_run and _written_by_a_run(p))))
+        checkpoints = tuple(p for p in (self.checkpoints.iterdir() if self.checkpoints.is_dir() else ())
+                            if _CHECKPOINT_FILE.match(p.name) and p.is_file())
+        outputs = tuple(p.name for p in entries if p.name in RUN_OUTPUTS)
+        return RunFolderContents(self.root, exists=True, is_folder=True, entries=tuple(p.name for p in entries),
+                                 foreign=foreign, checkpoints=tuple(sorted(checkpoints)), outputs=outputs)
+
+    def remove_run_entries(self) -> None:
+        """Delete the entries a run writes (never anything else); the folder itself stays.
+
+        Checkpoints go first, so an interrupted removal never leaves a resumable state beside
+        outputs of another session. MipslamError naming the entry when one cannot be removed.
+        """
+        order = [self.checkpoints, *(self.root / name for name in sorted(RUN_OUTPUTS)), self.report, self.config_yaml]
+        order += [p for p in self.root.iterdir() if _is_temporary(p.name)] if self.root.is_dir() else []
+        for path in order:
+            try:
+                if path.is_dir() and not path.is_symlink():
+                    shutil.rmtree(path)
+                elif path.exists() or path.is_symlink():
+                    path.unlink()
+            except OSError as exc:
+                raise MipslamError(f"{path}: cannot remove it ({exc.strerror or exc}); remove it by hand or choose "
+                                   "another --out") from exc
+
+    def remove_if_unstarted(self, *, remove_root: bool) -> bool:
+        """After a run failed before its first checkpoint: delete what it created (``config.yaml``, the empty
+        ``checkpoints/`` and ``report/``, temporaries) and, with ``remove_root``, the folder once empty.
+
+        Anything else in the folder stays (then so does the folder). Returns True if the folder is gone.
+        """
+        if not self.root.is_dir() or self.inspect().checkpoints:
+            return False
+        for path in [self.config_yaml, *(p for p in self.root.iterdir() if _is_temporary(p.name))]:
+            with contextlib.suppress(OSError):
+                path.unlink()
+        for folder in (self.checkpoints, self.report, *([self.root] if remove_root else [])):
+            with contextlib.suppress(OSError):  # not empty (or not there): it stays
+                folder.rmdir()
+        return not self.root.exists()
+
     def remove_stale_temporaries(self) -> list[Path]:
         """Delete temporary files a killed process left behind (``.NAME.*.tmp``); returns them."""
         removed = []
@@ -254,3 +315,94 @@ class RunFolder:
         if removed:
             logger.info("removed %d temporary file(s) left by an interrupted run in %s", len(removed), self.root)
         return removed
+
+
+# Everything a run writes at its top level besides config.yaml, checkpoints/ and report/.
+RUN_OUTPUTS = frozenset({"traj_est.txt", "traj_gt.txt", "keyframes.txt", "map.ply", "metrics.json", "timings.json",
+                         "loops.json", "run.json", "frames.json", "bench_eval.json"})
+RUN_ENTRIES = RUN_OUTPUTS | {"config.yaml", RunFolder.CHECKPOINTS, RunFolder.REPORT}
+_CHECKPOINT_FILE = re.compile(r"^checkpoint-\d{6,}\.ckpt$")  # mipslam.checkpoint.CHECKPOINT_PATTERN
+_REPORT_SUFFIXES = (".png", ".html", ".svg", ".json", ".csv", ".txt")
+
+
+def _is_temporary(name: str) -> bool:
+    """A temporary of an atomic write or a write probe (``.NAME.XXXX.tmp``, ``.write_probe.XXXX``)."""
+    return name.startswith(".") and (name.endswith(TEMP_SUFFIX) or name.startswith(".write_probe."))
+
+
+def _written_by_a_run(path: Path) -> bool:
+    """Whether ``path`` (an entry of a run folder) is something a run writes: a known output, a temporary,
+    or one of its two folders holding only what a run puts there (checkpoints; plots and the report page)."""
+    name = path.name
+    if _is_temporary(name):
+        return True
+    if name not in RUN_ENTRIES or path.is_symlink():
+        return False
+    if name == RunFolder.CHECKPOINTS:
+        return path.is_dir() and all(p.is_file() and (_CHECKPOINT_FILE.match(p.name) or _is_temporary(p.name))
+                                     for p in path.iterdir())
+    if name == RunFolder.REPORT:
+        return path.is_dir() and all(p.is_file() and (p.suffix.lower() in _REPORT_SUFFIXES or _is_temporary(p.name))
+                                     for p in path.iterdir())
+    return path.is_file()
+
+
+@dataclass(frozen=True)
+class RunFolderContents:
+    """What a would-be run folder holds (:meth:`RunFolder.inspect`)."""
+
+    root: Path
+    exists: bool
+    is_folder: bool = True
+    entries: tuple[str, ...] = ()
+    foreign: tuple[str, ...] = ()  # entries a run does not write
+    checkpoints: tuple[Path, ...] = ()  # checkpoint files, oldest first
+    outputs: tuple[str, ...] = ()  # final outputs present (RUN_OUTPUTS)
+
+    @property
+    def empty(self) -> bool:
+        return not self.entries
+
+    @property
+    def holds_run(self) -> bool:
+        """A run that got somewhere: a checkpoint or an output (not just a config.yaml and empty folders)."""
+        return bool(self.checkpoints or self.outputs)
+
+    def describe_foreign(self, limit: int = 3) -> str:
+        shown = ", ".join(self.foreign[:limit])
+        return shown + (f" and {len(self.foreign) - limit} more" if len(self.foreign) > limit else "")
+
+
+def prepare_new_run_folder(path: str | Path, *, overwrite: bool = False) -> bool:
+    """Check that a new run may write into ``path``; with ``overwrite``, delete the earlier run there first.
+
+    A new run starts in a folder that does not exist, is empty, or holds only the remains of a run that
+    stopped before its first checkpoint. A folder holding a run is refused (MipslamError saying how to
+    continue it, replace it, or go elsewhere) unless ``overwrite``; then only the entries a run writes are
+    deleted, and a folder holding anything else is refused even with ``overwrite``. Returns whether the
+    folder exists now (False: the run will create it, and may remove it if it fails before it starts).
+    """
+    folder = RunFolder(path)
+    contents = folder.inspect()
+    if not contents.exists:
+        return False
+    if not contents.is_folder:
+        raise MipslamError(f"{folder.root}: exists and is not a folder; choose another --out")
+    if contents.empty:
+        return True
+    if contents.foreign and contents.holds_run:
+        raise MipslamError(f"{folder.root}: holds a mipslam run and files a run did not make "
+                           f"({contents.describe_foreign()}); continue the run with --resume {folder.root}, or choose "
+                           "another --out (--overwrite deletes only a run's own files: move the others away first)")
+    if contents.foreign:
+        raise MipslamError(f"{folder.root}: is not empty and holds no mipslam run ({contents.describe_foreign()}); "
+                           "a run goes into a new or empty folder: choose another --out")
+    if contents.holds_run and not overwrite:
+        state = f"{len(contents.checkpoints)} checkpoint(s)" if contents.checkpoints else "no checkpoint"
+        finished = "a finished run" if folder.traj_est.is_file() else "a partial run"
+        raise MipslamError(f"{folder.root}: holds {finished} ({state}); continue it with --resume {folder.root}, "
+                           f"replace it with --overwrite, or choose another --out")
+    folder.remove_run_entries()
+    if contents.holds_run:
+        logger.warning("--overwrite: removed the earlier run in %s", folder.root)
+    return True
