@@ -119,7 +119,7 @@ def _build_parser() -> argparse.ArgumentParser:
     ex.add_argument("run_dir", type=Path, help="run folder written by 'mipslam run'")
     ex.add_argument("--mesh", type=Path, required=True, help="output mesh file (.ply, .obj, ...)")
     ex.add_argument("--voxel-size", type=float, default=None,
-                    help="TSDF voxel size in metres (default: one rendered pixel at the median depth, in [0.005, 0.1])")
+                    help="TSDF voxel size in metres (default: half a rendered pixel at the median depth, in [0.005, 0.1])")
     ex.add_argument("--overwrite", action="store_true", help="replace an existing mesh file")
     ex.add_argument("--sdf-trunc", type=float, default=None, help="TSDF truncation in metres (default 4 voxels)")
     ex.add_argument("--depth-max", type=float, default=None, help="ignore rendered depth beyond this (metres)")
