@@ -1,7 +1,8 @@
 """Command-line interface: the only place that parses arguments, configures logging and turns
 errors into exit codes (0 success, 1 unexpected failure, 2 usage/config/data error, 130 Ctrl-C).
 
-    mipslam run CONFIG [--preset P] [--set k=v]... [--out DIR] [--resume RUN_DIR]
+    mipslam run CONFIG [--preset P] [--set k=v]... [--out DIR] [--resume RUN_DIR] [--viewer [--viewer-host H] [--viewer-port P]]
+    mipslam view RUN_DIR [--host H] [--port P] [--screenshot PNG]
     mipslam eval RUN_DIR [--frames all|keyframes|non_keyframes] [--scales 0.25,1] [--modes point,eaa] [--every K]
                  | --gt GT.txt --est EST.txt
     mipslam export RUN_DIR --mesh mesh.ply [--voxel-size M]
@@ -67,6 +68,24 @@ def _mode_list(text: str) -> tuple[str, ...]:
     return values
 
 
+def _port(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a port number, got {text!r}") from None
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a port in 0..65535, got {value}")
+    return value
+
+
+def _add_viewer_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--viewer", action="store_true",
+                   help="show the run live in the browser (needs pip install 'mipslam[viewer]')")
+    p.add_argument("--viewer-host", default="127.0.0.1",
+                   help="viewer address (default 127.0.0.1, this machine only; 0.0.0.0 = every interface)")
+    p.add_argument("--viewer-port", type=_port, default=8080, help="viewer port (default 8080; the next free one when busy)")
+
+
 def _build_parser() -> argparse.ArgumentParser:
     parser = _ArgumentParser(prog="mipslam", description="RGB-D SLAM with an anti-aliased 3D Gaussian map.")
     parser.add_argument("--version", action="version", version=f"mipslam {__version__}")
@@ -80,6 +99,7 @@ def _build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", type=Path, help="run folder (default: runs/<config name>-<time>)")
     run.add_argument("--resume", type=Path, metavar="RUN_DIR", help="continue the run in RUN_DIR from its last good checkpoint")
     run.add_argument("--no-eval", action="store_true", help="skip the evaluation at the end")
+    _add_viewer_args(run)
 
     ev = sub.add_parser("eval", help="evaluate a run folder, or a pair of TUM trajectory files")
     ev.add_argument("run_dir", nargs="?", type=Path, help="run folder written by 'mipslam run'")
@@ -155,6 +175,17 @@ def _build_parser() -> argparse.ArgumentParser:
                        help="run the jobs as Ray tasks: a local Ray instance, or the cluster at ADDRESS "
                             "(needs pip install 'mipslam[ray]')")
 
+    vw = sub.add_parser("view", help="show a run folder in the browser (map, trajectories, keyframes, loops)")
+    vw.add_argument("run_dir", type=Path, help="run folder written by 'mipslam run'")
+    vw.add_argument("--host", default="127.0.0.1",
+                    help="address to listen on (default 127.0.0.1, this machine only; 0.0.0.0 = every interface)")
+    vw.add_argument("--port", type=_port, default=8080, help="port (default 8080; the next free one when busy)")
+    vw.add_argument("--follow", action="store_true", help="move the view with the frame chosen on the slider")
+    vw.add_argument("--map-only", action="store_true", help="draw the Gaussians alone (no trajectories or cameras)")
+    vw.add_argument("--screenshot", type=Path, metavar="PNG",
+                    help="save a screenshot of the page (headless Chromium) to PNG and exit instead of serving")
+    vw.add_argument("--size", default="960x640", metavar="WxH", help="screenshot size in pixels (default 960x640)")
+
     cf = sub.add_parser("config", help="print the resolved config (file + preset + overrides)")
     cf.add_argument("config", type=Path)
     _add_config_args(cf)
@@ -180,10 +211,75 @@ def _cmd_run(args) -> int:
     run_dir = args.resume or args.out or Path("runs") / f"{args.config.stem}-{time.strftime('%Y%m%d-%H%M%S')}"
     # What is alive now (modules, the config) lives for the whole run: keep it out of the cyclic collector's
     # full passes, each of which would rescan ~200k objects (0.15-0.2 s; 0.4 s of GC in 20 frames -> 0.1 s).
+    viewer = _start_live_viewer(args, config) if args.viewer else None
     gc.freeze()
-    summary = run_slam(config, run_dir, resume=args.resume is not None, evaluate=not args.no_eval)
+    try:
+        summary = run_slam(config, run_dir, resume=args.resume is not None, evaluate=not args.no_eval,
+                           observers=[viewer] if viewer is not None else [])
+    except BaseException:
+        if viewer is not None:
+            viewer.close()
+        raise
     print(summary.describe())
+    if viewer is not None:
+        viewer.finish(summary.run_dir)
+        _serve_until_interrupted(viewer.url, viewer.close)
     return EXIT_OK
+
+
+def _start_live_viewer(args, config):
+    from mipslam.viewer.live import LiveViewer
+    from mipslam.viewer.server import ViewerOptions
+
+    viewer = LiveViewer(config.render, ViewerOptions(host=args.viewer_host, port=args.viewer_port))
+    log.info("viewer: %s (open it in a browser)", viewer.url)
+    return viewer
+
+
+def _serve_until_interrupted(url: str, close) -> None:
+    """Keep the viewer open until Ctrl-C when someone can press it (stdin a terminal); else close it now."""
+    if not sys.stdin.isatty():
+        close()
+        return
+    print(f"viewer: {url} (Ctrl-C to close)", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        close()
+
+
+def _cmd_view(args) -> int:
+    from mipslam.viewer.recorded import RecordedViewer
+    from mipslam.viewer.server import ViewerOptions
+
+    if args.screenshot is not None:
+        from mipslam.viewer.browser import screenshot
+
+        try:
+            width, height = (int(v) for v in args.size.lower().split("x"))
+        except ValueError:
+            raise _UsageError(f"mipslam view: --size expects WIDTHxHEIGHT, e.g. 960x640, got {args.size!r}") from None
+        viewer = RecordedViewer(args.run_dir, ViewerOptions(host="127.0.0.1", port=0, follow=args.follow,
+                                                            map_only=args.map_only))
+        try:
+            out = screenshot(viewer.url, args.screenshot, width=width, height=height)
+        finally:
+            viewer.close()
+        print(f"screenshot of {args.run_dir} written to {out}")
+        return EXIT_OK
+    viewer = RecordedViewer(args.run_dir, ViewerOptions(host=args.host, port=args.port, follow=args.follow,
+                                                        map_only=args.map_only))
+    print(f"viewer: {viewer.url} (Ctrl-C to close)", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        return EXIT_OK
+    finally:
+        viewer.close()
 
 
 def _cmd_eval(args) -> int:
@@ -313,7 +409,8 @@ def _cmd_bench(args) -> int:
     return EXIT_OK
 
 
-_COMMANDS = {"bench": _cmd_bench, "run": _cmd_run, "eval": _cmd_eval, "synth": _cmd_synth, "config": _cmd_config, "export": _cmd_export}
+_COMMANDS = {"bench": _cmd_bench, "run": _cmd_run, "eval": _cmd_eval, "synth": _cmd_synth, "config": _cmd_config, "export": _cmd_export,
+             "view": _cmd_view}
 
 
 def _configure_logging(debug: bool, quiet: bool) -> None:

@@ -16,7 +16,7 @@ from collections import OrderedDict
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import torch
 from tqdm import tqdm
@@ -425,10 +425,13 @@ class _ProgressLog:
 
 
 def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evaluate: bool = True,
-             hooks: PipelineHooks | None = None) -> RunSummary:
+             hooks: PipelineHooks | None = None,
+             observers: Sequence[Callable[[Stages, SLAMState, FrameRecord], None]] = ()) -> RunSummary:
     """Run SLAM on the configured sequence into ``run_dir`` (resuming from its last good checkpoint).
 
     ``hooks``: fault injection for tests and benchmarks (:class:`PipelineHooks`); None in normal runs.
+    ``observers``: called as ``observer(stages, state, record)`` after every completed frame; they read
+    the state and must not change it (e.g. the live viewer, :class:`mipslam.viewer.live.LiveViewer`).
     """
     if resume and not Path(run_dir).is_dir():
         raise CheckpointError(f"{run_dir}: no such run folder to resume; check the path, or start a new run with --out")
@@ -463,6 +466,8 @@ def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evalu
                     release_free_heap()  # fragmentation, not live data, would otherwise grow RSS
                 bar.set_postfix(gaussians=len(state.gaussian_map), loss=f"{record.tracking_loss:.4f}", refresh=False)
                 progress.frame_done(state, record, bar.disable)
+                for observer in observers:
+                    observer(stages, state, record)
                 if stop_requested:
                     raise KeyboardInterrupt
     except KeyboardInterrupt:
