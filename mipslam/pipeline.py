@@ -24,7 +24,7 @@ from tqdm import tqdm
 from mipslam.checkpoint import load_latest_checkpoint, save_checkpoint
 from mipslam.heap import release_free_heap, set_mmap_threshold
 from mipslam.config import Config, config_to_dict, config_to_yaml
-from mipslam.datasets import RGBDSequence, make_sequence
+from mipslam.datasets import RGBDSequence, StreamEnded, make_sequence
 from mipslam.errors import CheckpointError, ConfigError, DatasetError, MipslamError
 from mipslam.evaluation.image_metrics import psnr
 from mipslam.geometry import se3_inverse
@@ -455,8 +455,13 @@ def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evalu
     try:
         with _ctrl_c_after_the_frame() as stop_requested:
             for index in bar:
+                try:
+                    timestamp = float(sequence.timestamps[index])
+                except StreamEnded as exc:  # a camera or real-time playback stopped: the sequence ends here
+                    log.info("%s", exc)
+                    break
                 frame_complete = False
-                record = process_frame(stages, state, index, float(sequence.timestamps[index]), T_wc_first)
+                record = process_frame(stages, state, index, timestamp, T_wc_first)
                 frame_complete = True
                 if not record.tracked:
                     log.warning("frame %d: tracking failed (%s); kept the motion-model pose", index, record.status)

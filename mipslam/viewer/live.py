@@ -83,6 +83,7 @@ class LiveViewer:
         self._frames_seen = 0
         self._gt: tuple[np.ndarray, np.ndarray] | None = None  # (gt positions [N, 3], valid [N]) of the sequence
         self._failed = False
+        self._finished = False
         self.captures = 0  # captures taken (frames the page was updated for, at most)
         self.updates = 0  # snapshots drawn
         self.busy_s = 0.0  # seconds the viewer thread worked
@@ -209,6 +210,9 @@ class LiveViewer:
     def finish(self, run_dir=None, timeout_s: float = 30.0) -> None:
         """Stop taking captures, let the viewer thread finish, then show the finished run folder (its final
         map after refinement, and its metrics) when ``run_dir`` is given."""
+        if self._finished:
+            return
+        self._finished = True
         self._failed = True  # no more captures
         self._offer(None)
         self._thread.join(timeout=timeout_s)
