@@ -228,3 +228,23 @@ def test_a_failing_viewer_turns_itself_off_and_the_run_goes_on(tiny_run, tmp_pat
     assert summary.frames == 3
     assert any("viewer: turned off" in r.getMessage() for r in caplog.records)
     assert math.isfinite(float(np.loadtxt(tmp_path / "broken" / "traj_est.txt")[:, 1:].sum()))
+
+
+def test_the_frame_slider_shows_the_frame_beside_the_map_rendered_at_its_pose(tiny_run):
+    pytest.importorskip("viser", reason="viser is not installed (pip install 'mipslam[viewer]')")
+    from mipslam.viewer.recorded import RecordedViewer
+    from mipslam.viewer.server import ViewerOptions
+
+    _, run_dir, _ = tiny_run
+    viewer = RecordedViewer(run_dir, ViewerOptions(port=0, follow=True))
+    try:
+        viewer.select_frame(5)
+        shown = viewer.server.shown
+        assert shown.current == 5
+        frame, rendered = shown.frame_image, shown.rendered_image
+        assert frame.shape == rendered.shape == (36, 48, 3) and frame.dtype == np.uint8
+        error = np.abs(frame.astype(float) - rendered.astype(float)).mean() / 255
+        other = np.abs(frame.astype(float) - viewer.images(0)["frame_image"].astype(float)).mean() / 255
+        assert error < 0.08 and error < other  # the render matches this frame, not merely any frame
+    finally:
+        viewer.close()

@@ -39,7 +39,7 @@ def render_panel(gaussians, T_wc: np.ndarray, intrinsics: Intrinsics, render_con
     from mipslam.geometry import se3_inverse
     from mipslam.rendering import render_view
 
-    T_cw = se3_inverse(torch.as_tensor(np.asarray(T_wc), dtype=torch.float64))
+    T_cw = se3_inverse(torch.from_numpy(np.array(T_wc, dtype=np.float64)))  # a copy: run files are read-only arrays
     out = render_view(gaussians, T_cw, intrinsics, render_config, mode="eaa")
     return to_uint8_image(out.color.detach().cpu().numpy())
 
@@ -58,7 +58,7 @@ class RecordedViewer:
                                    on_frame_selected=self.select_frame)
         first = replace(self.run.snapshot, current=0 if frames else -1)
         if frames and not options.map_only:
-            first = replace(first, **self._images(0))
+            first = replace(first, **self.images(0))
         self.server.show(first)
 
     @property
@@ -77,7 +77,7 @@ class RecordedViewer:
         try:
             while self._pending is not None:
                 wanted, self._pending = self._pending, None
-                images = self._images(wanted)
+                images = self.images(wanted)
                 self.server.show_images(images["frame_image"], images["rendered_image"])
         finally:
             self._render_lock.release()
@@ -104,7 +104,7 @@ class RecordedViewer:
                     index[position] = candidate
         return sequence, index
 
-    def _images(self, position: int) -> dict:
+    def images(self, position: int) -> dict:
         """frame_image / rendered_image of estimated frame ``position`` (None where unavailable)."""
         frame_image = rendered = None
         intrinsics = self.run.snapshot.intrinsics

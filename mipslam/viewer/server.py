@@ -17,7 +17,7 @@ import io
 import logging
 import math
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
@@ -86,8 +86,7 @@ class ViewerServer:
                 raise MipslamError(f"cannot serve the viewer on {options.host}:{options.port} ({exc}); "
                                    "choose another --viewer-host / --viewer-port") from None
         server = self._server
-        server.gui.configure_theme(control_layout="collapsible", show_logo=False, show_share_button=False,
-                                   control_width="medium")
+        server.gui.configure_theme(show_logo=False, show_share_button=False, control_width="medium")
         server.gui.set_panel_label(title)
         self._headline = server.gui.add_markdown("waiting for the first frame ...")
         self._slider = None
@@ -119,6 +118,12 @@ class ViewerServer:
     def port(self) -> int:
         return int(self._server.get_port())
 
+    @property
+    def shown(self) -> SceneSnapshot | None:
+        """What the page shows now (the last snapshot, with the current frame and images it was given since)."""
+        with self._lock:
+            return self._last
+
     def show(self, snapshot: SceneSnapshot) -> None:
         """Replace every layer with ``snapshot``'s content (and move the browsers' cameras when following)."""
         with self._lock:
@@ -144,6 +149,8 @@ class ViewerServer:
 
     def show_images(self, frame_image: np.ndarray | None, rendered_image: np.ndarray | None) -> None:
         with self._lock:
+            if self._last is not None:
+                self._last = replace(self._last, frame_image=frame_image, rendered_image=rendered_image)
             self._show_images(frame_image, rendered_image)
 
     def move_current(self, position: int) -> None:
@@ -151,8 +158,6 @@ class ViewerServer:
         with self._lock:
             if self._last is None or not 0 <= position < len(self._last.est_T_wc):
                 return
-            from dataclasses import replace
-
             self._last = replace(self._last, current=position)
             extent = _extent(self._last)
             self._draw_current(self._last, max(MIN_FRUSTUM_M, FRUSTUM_FRACTION * extent))
