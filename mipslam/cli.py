@@ -265,7 +265,8 @@ def _cmd_view(args) -> int:
         viewer = RecordedViewer(args.run_dir, ViewerOptions(host="127.0.0.1", port=0, follow=args.follow,
                                                             map_only=args.map_only))
         try:
-            out = screenshot(viewer.url, args.screenshot, width=width, height=height)
+            out = screenshot(viewer.url, args.screenshot, width=width, height=height,
+                             ready=lambda: viewer.server.clients > 0)
         finally:
             viewer.close()
         print(f"screenshot of {args.run_dir} written to {out}")

@@ -202,7 +202,8 @@ def test_live_viewer_leaves_the_trajectory_bit_identical(tiny_run, tmp_path):
         assert (tmp_path / "live" / "traj_est.txt").read_bytes() == (run_dir / "traj_est.txt").read_bytes()
         assert (tmp_path / "live" / "map.ply").read_bytes() == (run_dir / "map.ply").read_bytes()
         if find_chromium() is not None:
-            shot = screenshot(viewer.url, tmp_path / "live.png", width=800, height=600)
+            shot = screenshot(viewer.url, tmp_path / "live.png", width=800, height=600,
+                              ready=lambda: viewer.server.clients > 0)
             assert _map_colour_fraction(shot, snapshot_from_run_dir(run_dir).snapshot.splats) > 0.1
     finally:
         viewer.close()

@@ -19,7 +19,7 @@ import logging
 import queue
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -200,7 +200,7 @@ class LiveViewer:
             mask = valid[:count]
             gt_positions = positions[:count][mask]
             ate = aligned_ate_rmse(est_T_wc[:count, :3, 3][mask], gt_positions)
-        headline = Headline(**{**capture.headline.__dict__, "ate_rmse_m": ate})
+        headline = replace(capture.headline, ate_rmse_m=ate)
         return SceneSnapshot(splats=splats, est_T_wc=est_T_wc, keyframe_T_wc=capture.keyframe_T_wc.numpy(),
                              headline=headline, gt_positions=gt_positions, loop_edges=capture.loop_edges.numpy(),
                              current=len(est_T_wc) - 1, frame_image=to_uint8_image(capture.color.numpy()),

@@ -119,6 +119,11 @@ class ViewerServer:
         return int(self._server.get_port())
 
     @property
+    def clients(self) -> int:
+        """Pages connected now."""
+        return len(self._server.get_clients())
+
+    @property
     def shown(self) -> SceneSnapshot | None:
         """What the page shows now (the last snapshot, with the current frame and images it was given since)."""
         with self._lock:
