@@ -1,8 +1,9 @@
 """Command-line interface: the only place that parses arguments, configures logging and turns
 errors into exit codes (0 success, 1 unexpected failure, 2 usage/config/data error, 130 Ctrl-C).
 
-    mipslam run CONFIG [--preset P] [--set k=v]... [--out DIR] [--resume RUN_DIR] [--viewer [--viewer-host H] [--viewer-port P]]
-    mipslam view RUN_DIR [--host H] [--port P] [--screenshot PNG]
+    mipslam run CONFIG [--preset P] [--set k=v]... [--out DIR] [--resume RUN_DIR]
+                [--viewer [--viewer-host H] [--viewer-port P]]
+    mipslam view RUN_DIR [--host H] [--port P] [--follow] [--map-only] [--screenshot PNG [--size WxH]]
     mipslam eval RUN_DIR [--frames all|keyframes|non_keyframes] [--scales 0.25,1] [--modes point,eaa] [--every K]
                  | --gt GT.txt --est EST.txt
     mipslam export RUN_DIR --mesh mesh.ply [--voxel-size M]
@@ -209,9 +210,9 @@ def _cmd_run(args) -> int:
     if args.resume is not None and args.out is not None and args.out.resolve() != args.resume.resolve():
         raise _UsageError("mipslam run: --resume RUN_DIR continues in RUN_DIR; drop --out or give the same folder")
     run_dir = args.resume or args.out or Path("runs") / f"{args.config.stem}-{time.strftime('%Y%m%d-%H%M%S')}"
+    viewer = _start_live_viewer(args, config) if args.viewer else None
     # What is alive now (modules, the config) lives for the whole run: keep it out of the cyclic collector's
     # full passes, each of which would rescan ~200k objects (0.15-0.2 s; 0.4 s of GC in 20 frames -> 0.1 s).
-    viewer = _start_live_viewer(args, config) if args.viewer else None
     gc.freeze()
     try:
         summary = run_slam(config, run_dir, resume=args.resume is not None, evaluate=not args.no_eval,
@@ -410,8 +411,8 @@ def _cmd_bench(args) -> int:
     return EXIT_OK
 
 
-_COMMANDS = {"bench": _cmd_bench, "run": _cmd_run, "eval": _cmd_eval, "synth": _cmd_synth, "config": _cmd_config, "export": _cmd_export,
-             "view": _cmd_view}
+_COMMANDS = {"bench": _cmd_bench, "run": _cmd_run, "eval": _cmd_eval, "synth": _cmd_synth, "config": _cmd_config,
+             "export": _cmd_export, "view": _cmd_view}
 
 
 def _configure_logging(debug: bool, quiet: bool) -> None:

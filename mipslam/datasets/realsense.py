@@ -99,6 +99,7 @@ class RealSenseSequence:
     """
 
     timestamp_kind = "time"
+    streaming = True  # frames arrive one after another; the length is not known before the stream ends
 
     def __init__(self, cfg: DatasetConfig, *, live_camera: bool):
         self._rs = import_pyrealsense2()

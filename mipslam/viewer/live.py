@@ -127,7 +127,8 @@ class LiveViewer:
         frame = stages.frames[record.index]
         elapsed = now - (self._first_call or now)
         fps = (self._frames_seen - 1) / elapsed if elapsed > 0 and self._frames_seen > 1 else None
-        headline = Headline(frame=state.next_frame, total_frames=len(sequence), frames_per_second=fps,
+        total = 0 if getattr(sequence, "streaming", False) else len(sequence)  # a stream's length is unknown
+        headline = Headline(frame=state.next_frame, total_frames=total, frames_per_second=fps,
                             gaussians=len(gmap), keyframes=len(state.keyframe_frames))
         return Capture(
             means=_copy(gmap.means), quats_wxyz=_copy(gmap.quats_wxyz), log_scales=_copy(gmap.log_scales),

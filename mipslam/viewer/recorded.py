@@ -24,6 +24,8 @@ log = logging.getLogger(__name__)
 # A sequence frame belongs to an estimated pose when their timestamps differ by less than this (seconds or
 # frame numbers): the run wrote the sequence's own timestamps, so they agree to the file's printed precision.
 TIMESTAMP_MATCH_TOLERANCE = 1e-4
+# Cameras and their recordings are streams, not indexable folders: their frames are not read again here.
+STREAM_KINDS = ("realsense", "realsense_bag")
 
 
 def panel_intrinsics(intrinsics: Intrinsics, width: int = PANEL_IMAGE_WIDTH) -> Intrinsics:
@@ -86,7 +88,7 @@ class RecordedViewer:
     def _open_sequence(self):
         """The run's dataset (to show the frames' images), or (None, {}) when it cannot be opened."""
         config = self.run.config
-        if config is None:
+        if config is None or config.dataset.kind in STREAM_KINDS:
             return None, {}
         from mipslam.datasets import make_sequence
 
