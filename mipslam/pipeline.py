@@ -503,7 +503,9 @@ def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evalu
 
     write_run_outputs(folder, state, sequence, config)
     metrics = None
-    if evaluate and config.run.evaluate_at_end:
+    if evaluate and config.run.evaluate_at_end and not folder.traj_gt.is_file():
+        log.info("no ground truth for this sequence: the run is not evaluated")
+    elif evaluate and config.run.evaluate_at_end:
         from mipslam.evaluation.run_eval import evaluate_run
 
         metrics = evaluate_run(folder.root)
