@@ -21,6 +21,10 @@ from mipslam.errors import DatasetError
 REPO_ROOT = Path(__file__).resolve().parent.parent
 rs = pytest.importorskip("pyrealsense2", reason="pyrealsense2 is not installed (pip install 'mipslam[realsense]')")
 
+# Small enough for a few seconds per run on 2 cores (as tests/test_pipeline.py).
+TINY = ["mapping.first_frame_iterations=30", "mapping.iterations=8", "mapping.densify_pixel_stride=2",
+        "tracking.iterations=15", "keyframes.window_size=3", "keyframes.random_past=1", "run.threads=1",
+        "mapping.final_iterations=0"]
 DEPTH_UNITS = 0.001  # metres per z16 step, as a D400 camera reports
 
 
@@ -201,7 +205,7 @@ def test_a_run_on_a_recording_tracks_the_synthetic_camera(recording, tmp_path):
     out = tmp_path / "run"
     assert main(["-q", "run", str(REPO_ROOT / "configs" / "synthetic.yaml"), "--preset", "fast",
                  "--set", "dataset.kind=realsense_bag", "--set", f"dataset.path={path}",
-                 "--set", "mapping.final_iterations=0", "--out", str(out)]) == 0  # no ground truth: no evaluation
+                 *(f"--set={o}" for o in TINY), "--out", str(out)]) == 0  # no ground truth: no evaluation
     assert not (out / "metrics.json").exists()
     est = np.loadtxt(out / "traj_est.txt")
     assert est.shape[1] == 8 and len(est) >= 7 and np.isfinite(est).all()  # see the full-speed test for the 7

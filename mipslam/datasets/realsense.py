@@ -26,6 +26,8 @@ depth (about 1.5 MB per 640x480 frame). Resuming a run re-plays a recording from
 from __future__ import annotations
 
 import logging
+import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -40,12 +42,14 @@ log = logging.getLogger(__name__)
 
 DEFAULT_SIZE = (640, 480)
 CAMERA_FPS = 30
-# A stream that delivers no frame for this long has ended (unplugged camera, end of a recording).
+# A camera that delivers no frame for this long has stopped (unplugged); a recording ends when its playback stops.
 FRAME_TIMEOUT_MS = 5000
+POLL_MS = 100  # waits for the next frame in slices of this length, checking whether a playback has stopped
 RECORDING_SUFFIXES = (".bag", ".db3")
 # Upper bound of a recording's frame rate (D400 depth streams reach 90 frames/s): its duration times this
 # bounds its frame count where the file does not state it.
 MAX_RECORDED_FPS = 90
+DROP_REPORT_S = 10.0  # at most one log line about dropped frames per this many seconds
 
 
 def _same_camera(depth_intrinsics, color_intrinsics, depth_to_color) -> bool:
@@ -114,6 +118,8 @@ class RealSenseSequence:
         self._last_seen = -1  # colour frame number of the newest frameset taken from the stream
         self._taken = 0  # framesets taken from the stream (before first_frame / stride)
         self._ended = False
+        self._last_drop_report = -math.inf
+        self._playback = None  # the recording's playback device (None for a camera)
         if live_camera:
             self.root = Path(cfg.path or "realsense")
             self.name = f"realsense {cfg.path}".strip()
@@ -211,7 +217,7 @@ class RealSenseSequence:
         bound = 10**9
         try:
             if not self.live_camera:
-                playback = profile.get_device().as_playback()
+                playback = self._playback = profile.get_device().as_playback()
                 bound = int(playback.get_duration().total_seconds() * MAX_RECORDED_FPS) + MAX_RECORDED_FPS
             depth_scale = float(profile.get_device().first_depth_sensor().get_depth_scale())
             color_profile = profile.get_stream(rs.stream.color).as_video_stream_profile()
@@ -263,14 +269,20 @@ class RealSenseSequence:
         waiting (older ones are dropped). None at the end of the stream."""
         if self._pipeline is None:
             return None
-        frames = None
+        frames, waited_ms, stopped_polls = None, 0, 0
         while frames is None:
             try:
-                ok, candidate = self._pipeline.try_wait_for_frames(FRAME_TIMEOUT_MS)
+                ok, candidate = self._pipeline.try_wait_for_frames(POLL_MS)
             except RuntimeError:
                 return None
             if not ok:
-                return None
+                waited_ms += POLL_MS
+                if self._playback is not None and self._playback.current_status() == self._rs.playback_status.stopped:
+                    stopped_polls += 1  # twice in a row: its last frame cannot still be on its way
+                if stopped_polls >= 2 or waited_ms >= FRAME_TIMEOUT_MS:
+                    return None
+                continue
+            waited_ms = stopped_polls = 0
             frames = candidate if self._usable(candidate) else None
             if frames is None:
                 self._record_unpaired(candidate)
@@ -281,11 +293,20 @@ class RealSenseSequence:
         number = int(frames.get_color_frame().get_frame_number())
         if self._last_seen >= 0 and number > self._last_seen + 1:
             self.dropped_frames.extend(k for k in range(self._last_seen + 1, number) if k not in self.dropped_frames)
+            self._report_drops()
         if number in self.dropped_frames:  # its depth came after all
             self.dropped_frames.remove(number)
         self._last_seen = number
         self._taken += 1
         return frames
+
+    def _report_drops(self) -> None:
+        """Say how many frames were dropped so far, at most once every ``DROP_REPORT_S`` seconds."""
+        now = time.monotonic()
+        if now - self._last_drop_report >= DROP_REPORT_S:
+            self._last_drop_report = now
+            log.info("%s: %d camera frames dropped so far (mipslam is slower than the camera; the newest frame is "
+                     "processed each time)", self.name, len(self.dropped_frames))
 
     def _record_unpaired(self, frames) -> None:
         """A colour frame the stream delivered without its depth (librealsense's syncer does that, mostly for
