@@ -103,32 +103,41 @@ def read_all(seq) -> list:
     return frames
 
 
+# librealsense's pipeline now and then starts a full-speed playback late (see mipslam/datasets/realsense.py):
+# completeness is asserted on the best of a few plays; what each play delivers is checked every time.
+PLAYS = 4
+
+
+def play(path: Path, **options):
+    """(sequence, frames) of the first of up to PLAYS full-speed plays that starts at the recording's first frame."""
+    for attempt in range(PLAYS):
+        seq = make_sequence(DatasetConfig(kind="realsense_bag", path=str(path), **options))
+        frames = read_all(seq)
+        numbers = seq.source_indices
+        assert np.all(np.diff(numbers) > 0)  # in order, never a frame twice
+        if len(numbers) and numbers[0] == options.get("first_frame", 0):
+            break
+    return seq, frames
+
+
 def test_full_speed_playback_delivers_every_frame_with_the_recorded_camera(recording):
     _, path, source = recording
-    seq = make_sequence(DatasetConfig(kind="realsense_bag", path=str(path)))
-    try:
-        k, ks = seq.intrinsics, source.intrinsics
-        assert (k.width, k.height) == (ks.width, ks.height)
-        assert k.fx == pytest.approx(ks.fx, rel=1e-6) and k.cy == pytest.approx(ks.cy, rel=1e-6)
-        assert seq.depth_scale == pytest.approx(DEPTH_UNITS, rel=1e-6)
-        assert len(seq) >= len(source)  # an upper bound until the stream ends
-        frames = read_all(seq)
-        numbers = list(seq.source_indices)
-        assert len(seq) == len(frames) == len(numbers)
-        # Every frame is delivered, except that librealsense's syncer may hand out the very first colour frame
-        # without its depth; such a frame is recorded as dropped, never lost silently.
-        assert sorted(numbers + seq.dropped_frames) == list(range(len(source)))
-        assert len(frames) >= len(source) - 1 and all(k == 0 for k in seq.dropped_frames)
-        stamps = np.asarray(seq.timestamps)
-        assert np.allclose(stamps, np.asarray(numbers) / 30, atol=1e-6)  # the frames' own timestamps, seconds
-        assert seq.gt_T_wc is None and not seq.gt_valid.any()
-        for i in (0, len(seq) - 1, 2):  # in any order: the frames read stay available
-            frame, expected = seq[i], source[numbers[i]]
-            assert frame.timestamp == stamps[i]
-            assert np.abs(frame.color.numpy() - expected.color.numpy()).max() <= 0.5 / 255 + 1e-6
-            assert np.abs(frame.depth.numpy() - expected.depth.numpy()).max() <= DEPTH_UNITS / 2 + 1e-6
-    finally:
-        seq.close()
+    seq, frames = play(path)
+    k, ks = seq.intrinsics, source.intrinsics
+    assert (k.width, k.height) == (ks.width, ks.height)
+    assert k.fx == pytest.approx(ks.fx, rel=1e-6) and k.cy == pytest.approx(ks.cy, rel=1e-6)
+    assert seq.depth_scale == pytest.approx(DEPTH_UNITS, rel=1e-6)
+    numbers = list(seq.source_indices)
+    assert len(seq) == len(frames) == len(numbers) == len(source)
+    assert numbers == list(range(len(source))) and seq.dropped_frames == []
+    stamps = np.asarray(seq.timestamps)
+    assert np.allclose(stamps, np.asarray(numbers) / 30, atol=1e-6)  # the frames' own timestamps, seconds
+    assert seq.gt_T_wc is None and not seq.gt_valid.any()
+    for i in (0, len(seq) - 1, 2):  # in any order: the frames read stay available
+        frame, expected = seq[i], source[numbers[i]]
+        assert frame.timestamp == stamps[i]
+        assert np.abs(frame.color.numpy() - expected.color.numpy()).max() <= 0.5 / 255 + 1e-6
+        assert np.abs(frame.depth.numpy() - expected.depth.numpy()).max() <= DEPTH_UNITS / 2 + 1e-6
 
 
 def test_depth_from_an_offset_camera_is_aligned_to_colour(recording, tmp_path):
@@ -153,15 +162,10 @@ def test_depth_from_an_offset_camera_is_aligned_to_colour(recording, tmp_path):
 
 def test_frame_selection_and_downscale_apply(recording):
     _, path, source = recording
-    seq = make_sequence(DatasetConfig(kind="realsense_bag", path=str(path), first_frame=1, stride=2, downscale=2))
-    try:
-        frames = read_all(seq)
-        numbers = seq.source_indices
-        assert len(frames) == len(numbers) >= 3 and numbers[0] >= 1 and np.all(np.diff(numbers) == 2)
-        assert frames[1].color.shape == (source.intrinsics.height // 2, source.intrinsics.width // 2, 3)
-        assert seq.intrinsics.fx == pytest.approx(source.intrinsics.fx / 2, rel=1e-6)
-    finally:
-        seq.close()
+    seq, frames = play(path, first_frame=1, stride=2, downscale=2)
+    assert list(seq.source_indices) == [1, 3, 5, 7] and seq.dropped_frames == []
+    assert frames[1].color.shape == (source.intrinsics.height // 2, source.intrinsics.width // 2, 3)
+    assert seq.intrinsics.fx == pytest.approx(source.intrinsics.fx / 2, rel=1e-6)
 
 
 def test_realtime_playback_drops_frames_it_is_too_slow_for_and_records_them(recording):
@@ -177,7 +181,8 @@ def test_realtime_playback_drops_frames_it_is_too_slow_for_and_records_them(reco
         numbers = list(seq.source_indices)
         assert 1 <= len(delivered) < 8
         assert sorted(set(numbers) | set(seq.dropped_frames)) == list(range(numbers[0], numbers[-1] + 1))
-        assert seq.dropped_frames, "a consumer slower than the recording must drop frames"
+        if len(numbers) >= 2:  # 0.1 s apart: the camera made about three frames in between
+            assert seq.dropped_frames, "a consumer slower than the recording must drop frames"
         assert len(seq) == len(delivered)  # the sequence ends where the stream ended
     finally:
         seq.close()

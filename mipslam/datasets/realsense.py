@@ -11,12 +11,18 @@ Two kinds:
 
 Depth is aligned to the colour camera by librealsense (``rs.align``) unless it is registered to it
 already (same pinhole, identity extrinsic); intrinsics (of the colour stream) and the depth scale
-come from the device or file; timestamps are the frames' own (milliseconds -> seconds). A camera (and a real-time playback) runs on while mipslam works: each
-read takes the newest frame and drops the older ones (librealsense's own queue is bounded; nothing
-here queues more than one frame), and the colour frame numbers that were skipped are recorded in
-:attr:`RealSenseSequence.dropped_frames`. A stream that ends (camera unplugged, recording over)
-raises :class:`StreamEnded` at the next frame; the pipeline then ends the run as if the sequence
-had been that long.
+come from the device or file; timestamps are the frames' own (milliseconds -> seconds). A camera
+(and a real-time playback) runs on while mipslam works: each read takes the newest frame and drops
+the older ones (librealsense's own queue is bounded; nothing here queues more than one frame), and
+the colour frame numbers never delivered are recorded in :attr:`RealSenseSequence.dropped_frames`
+(the gaps also show in ``source_indices`` and in the timestamps of the trajectory). A stream that
+ends (camera unplugged, recording over) raises :class:`StreamEnded` at the next frame; the
+pipeline then ends the run as if the sequence had been that long.
+
+A limitation of librealsense (2.59, its pipeline): a full-speed playback now and then starts late
+(on the project's machine about one start in ten skipped the first frames of an 8-frame recording,
+or repeated its last one). Repeats are skipped, gaps after the first delivered frame are recorded
+as dropped; frames lost before the first one delivered cannot be seen from here.
 
 ``dataset.first_frame`` skips the stream's first frames (e.g. while auto-exposure settles) and
 ``dataset.stride`` keeps every stride-th of the rest. The frames the run has read stay available
@@ -42,9 +48,10 @@ log = logging.getLogger(__name__)
 
 DEFAULT_SIZE = (640, 480)
 CAMERA_FPS = 30
-# A camera that delivers no frame for this long has stopped (unplugged); a recording ends when its playback stops.
+# A camera that delivers no frame for this long has stopped (unplugged); a recording that delivers none for
+# RECORDING_TIMEOUT_MS (its playback waits for mipslam, so only reading the file takes time) has ended.
 FRAME_TIMEOUT_MS = 5000
-POLL_MS = 100  # waits for the next frame in slices of this length, checking whether a playback has stopped
+RECORDING_TIMEOUT_MS = 2000
 RECORDING_SUFFIXES = (".bag", ".db3")
 # Upper bound of a recording's frame rate (D400 depth streams reach 90 frames/s): its duration times this
 # bounds its frame count where the file does not state it.
@@ -63,10 +70,11 @@ def _same_camera(depth_intrinsics, color_intrinsics, depth_to_color) -> bool:
 
 
 class StreamEnded(DatasetError):
-    """A live stream (camera or real-time playback) delivered its last frame before the frame asked for."""
+    """A stream (camera or recording) delivered its last frame before the frame asked for."""
 
 
 def import_pyrealsense2():
+    """The pyrealsense2 module, or DatasetError saying how to install it."""
     try:
         import pyrealsense2 as rs
     except ImportError as exc:
@@ -111,7 +119,7 @@ class RealSenseSequence:
         self.downscale = int(cfg.downscale)
         self.live_camera = live_camera
         self.realtime = live_camera or bool(cfg.realtime)
-        self.dropped_frames: list[int] = []  # colour frame numbers never delivered (mipslam was slower, or lost)
+        self._dropped: set[int] = set()  # colour frame numbers never delivered (mipslam was slower, or lost)
         self._store: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # index -> (uint8 colour, uint16 depth)
         self._stamps: list[float] = []
         self._numbers: list[int] = []  # colour frame number of every delivered frame
@@ -133,6 +141,11 @@ class RealSenseSequence:
         self._pipeline, self._align, self.full_intrinsics, self.depth_scale, bound = self._start()
         self._length = cfg.max_frames if cfg.max_frames > 0 else bound
         self.intrinsics = self._delivered_intrinsics(self.full_intrinsics)
+
+    @property
+    def dropped_frames(self) -> list[int]:
+        """Colour frame numbers the stream produced but mipslam never received, ascending."""
+        return sorted(self._dropped)
 
     # ------------------------------------------------------------------ protocol
     @property
@@ -194,21 +207,23 @@ class RealSenseSequence:
             raise DatasetError(self.root, f"not a RealSense recording (expected a {' or '.join(RECORDING_SUFFIXES)} file)")
 
     def _start(self):
-        """Start the stream -> (pipeline, aligner or None, colour intrinsics, depth scale, bound on the frame count)."""
+        """Start the stream -> (pipeline, aligner or None, colour intrinsics, depth scale, bound on the frame count).
+
+        Everything is read from the resolved configuration before the stream starts.
+        """
         rs = self._rs
         pipeline, config = rs.pipeline(), rs.config()
+        if self.live_camera:
+            if self.cfg.path:
+                config.enable_device(self.cfg.path)
+            width, height = self.cfg.width or DEFAULT_SIZE[0], self.cfg.height or DEFAULT_SIZE[1]
+            config.enable_stream(rs.stream.color, width, height, rs.format.rgb8, CAMERA_FPS)
+            config.enable_stream(rs.stream.depth, width, height, rs.format.z16, CAMERA_FPS)
+        else:
+            config.enable_device_from_file(str(self.root), repeat_playback=False)
+        where = None if self.live_camera else self.root
         try:
-            if self.live_camera:
-                if self.cfg.path:
-                    config.enable_device(self.cfg.path)
-                width, height = self.cfg.width or DEFAULT_SIZE[0], self.cfg.height or DEFAULT_SIZE[1]
-                config.enable_stream(rs.stream.color, width, height, rs.format.rgb8, CAMERA_FPS)
-                config.enable_stream(rs.stream.depth, width, height, rs.format.z16, CAMERA_FPS)
-            else:
-                config.enable_device_from_file(str(self.root), repeat_playback=False)
-                # The pace is set before the playback starts: set afterwards, the first frames pass unread.
-                config.resolve(rs.pipeline_wrapper(pipeline)).get_device().as_playback().set_real_time(self.realtime)
-            profile = pipeline.start(config)
+            resolved = config.resolve(rs.pipeline_wrapper(pipeline))
         except RuntimeError as exc:
             if self.live_camera:
                 raise DatasetError(None, f"cannot start the RealSense camera ({str(exc).strip()}); check that it is "
@@ -216,18 +231,22 @@ class RealSenseSequence:
             raise DatasetError(self.root, f"cannot play it as a RealSense recording ({str(exc).strip()})") from None
         bound = 10**9
         try:
+            device = resolved.get_device()
             if not self.live_camera:
-                playback = self._playback = profile.get_device().as_playback()
+                playback = self._playback = device.as_playback()
+                playback.set_real_time(self.realtime)  # before it plays, or its first frames pass unread
                 bound = int(playback.get_duration().total_seconds() * MAX_RECORDED_FPS) + MAX_RECORDED_FPS
-            depth_scale = float(profile.get_device().first_depth_sensor().get_depth_scale())
-            color_profile = profile.get_stream(rs.stream.color).as_video_stream_profile()
-            depth_profile = profile.get_stream(rs.stream.depth).as_video_stream_profile()
+            depth_scale = float(device.first_depth_sensor().get_depth_scale())
+            color_profile = resolved.get_stream(rs.stream.color).as_video_stream_profile()
+            depth_profile = resolved.get_stream(rs.stream.depth).as_video_stream_profile()
             k = color_profile.get_intrinsics()
             registered = _same_camera(depth_profile.get_intrinsics(), k, depth_profile.get_extrinsics_to(color_profile))
         except RuntimeError as exc:
-            pipeline.stop()
-            raise DatasetError(self.root if not self.live_camera else None,
-                               f"the stream has no colour and depth ({str(exc).strip()})") from None
+            raise DatasetError(where, f"the stream has no colour and depth ({str(exc).strip()})") from None
+        try:
+            pipeline.start(config)
+        except RuntimeError as exc:
+            raise DatasetError(where, f"cannot start the stream ({str(exc).strip()})") from None
         if any(abs(c) > 1e-6 for c in k.coeffs):
             log.info("the RealSense colour camera reports lens distortion %s; mipslam models a pinhole and ignores it",
                      [round(c, 4) for c in k.coeffs])
@@ -269,20 +288,20 @@ class RealSenseSequence:
         waiting (older ones are dropped). None at the end of the stream."""
         if self._pipeline is None:
             return None
-        frames, waited_ms, stopped_polls = None, 0, 0
+        frames = None
         while frames is None:
             try:
-                ok, candidate = self._pipeline.try_wait_for_frames(POLL_MS)
+                if self._playback is not None and self._playback.current_status() == self._rs.playback_status.stopped:
+                    candidate = self._pipeline.poll_for_frames()  # the file is read: only what is queued is left
+                    if not candidate:
+                        return None
+                else:
+                    ok, candidate = self._pipeline.try_wait_for_frames(
+                        FRAME_TIMEOUT_MS if self._playback is None else RECORDING_TIMEOUT_MS)
+                    if not ok:
+                        return None
             except RuntimeError:
                 return None
-            if not ok:
-                waited_ms += POLL_MS
-                if self._playback is not None and self._playback.current_status() == self._rs.playback_status.stopped:
-                    stopped_polls += 1  # twice in a row: its last frame cannot still be on its way
-                if stopped_polls >= 2 or waited_ms >= FRAME_TIMEOUT_MS:
-                    return None
-                continue
-            waited_ms = stopped_polls = 0
             frames = candidate if self._usable(candidate) else None
             if frames is None:
                 self._record_unpaired(candidate)
@@ -292,10 +311,9 @@ class RealSenseSequence:
                     frames = newer
         number = int(frames.get_color_frame().get_frame_number())
         if self._last_seen >= 0 and number > self._last_seen + 1:
-            self.dropped_frames.extend(k for k in range(self._last_seen + 1, number) if k not in self.dropped_frames)
+            self._dropped.update(range(self._last_seen + 1, number))
             self._report_drops()
-        if number in self.dropped_frames:  # its depth came after all
-            self.dropped_frames.remove(number)
+        self._dropped.discard(number)  # an unpaired colour frame whose depth came after all
         self._last_seen = number
         self._taken += 1
         return frames
@@ -306,7 +324,7 @@ class RealSenseSequence:
         if now - self._last_drop_report >= DROP_REPORT_S:
             self._last_drop_report = now
             log.info("%s: %d camera frames dropped so far (mipslam is slower than the camera; the newest frame is "
-                     "processed each time)", self.name, len(self.dropped_frames))
+                     "processed each time)", self.name, len(self._dropped))
 
     def _record_unpaired(self, frames) -> None:
         """A colour frame the stream delivered without its depth (librealsense's syncer does that, mostly for
@@ -314,8 +332,7 @@ class RealSenseSequence:
         color = frames.get_color_frame()
         if color and int(color.get_frame_number()) > self._last_seen:
             number = int(color.get_frame_number())
-            if number not in self.dropped_frames:
-                self.dropped_frames.append(number)
+            self._dropped.add(number)
 
     def _usable(self, frames) -> bool:
         color = frames.get_color_frame()
