@@ -84,7 +84,8 @@ def _add_viewer_args(p: argparse.ArgumentParser) -> None:
                    help="show the run live in the browser (needs pip install 'mipslam[viewer]')")
     p.add_argument("--viewer-host", default="127.0.0.1",
                    help="viewer address (default 127.0.0.1, this machine only; 0.0.0.0 = every interface)")
-    p.add_argument("--viewer-port", type=_port, default=8080, help="viewer port (default 8080; the next free one when busy)")
+    p.add_argument("--viewer-port", type=_port, default=8080,
+                   help="viewer port (default 8080; the next free one when busy)")
 
 
 def _build_parser() -> argparse.ArgumentParser:

@@ -160,7 +160,8 @@ def _map_colour_fraction(png: Path, splats: Splats) -> float:
     return float(matches.mean())
 
 
-needs_viewer = pytest.mark.skipif(find_chromium() is None, reason="no Chromium on PATH (Debian: apt-get install chromium)")
+needs_viewer = pytest.mark.skipif(find_chromium() is None,
+                                  reason="no Chromium on PATH (Debian: apt-get install chromium)")
 
 
 @needs_viewer
@@ -168,7 +169,8 @@ def test_mipslam_view_draws_the_splats_in_a_browser(tiny_run, tmp_path):
     pytest.importorskip("viser", reason="viser is not installed (pip install 'mipslam[viewer]')")
     _, run_dir, _ = tiny_run
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
-    server = subprocess.Popen([sys.executable, "-m", "mipslam", "-q", "view", str(run_dir), "--port", "0", "--map-only"],
+    command = [sys.executable, "-m", "mipslam", "-q", "view", str(run_dir), "--port", "0", "--map-only"]
+    server = subprocess.Popen(command,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO)
     try:
         line = server.stdout.readline()

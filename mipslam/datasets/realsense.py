@@ -78,8 +78,9 @@ def import_pyrealsense2():
     try:
         import pyrealsense2 as rs
     except ImportError as exc:
-        raise DatasetError(None, f"dataset.kind realsense/realsense_bag needs the optional package pyrealsense2 ({exc}); "
-                                 "install it with pip install 'mipslam[realsense]' (or pip install pyrealsense2)") from None
+        raise DatasetError(None, f"dataset.kind realsense/realsense_bag needs the optional package pyrealsense2 "
+                                 f"({exc}); install it with pip install 'mipslam[realsense]' (or pip install "
+                                 "pyrealsense2)") from None
     return rs
 
 
@@ -204,7 +205,8 @@ class RealSenseSequence:
             what = "folder, expected a RealSense recording file" if self.root.is_dir() else "file not found"
             raise DatasetError(self.root, f"{what}; give a .bag or .db3 recording with --set dataset.path=FILE")
         if self.root.suffix.lower() not in RECORDING_SUFFIXES:
-            raise DatasetError(self.root, f"not a RealSense recording (expected a {' or '.join(RECORDING_SUFFIXES)} file)")
+            suffixes = " or ".join(RECORDING_SUFFIXES)
+            raise DatasetError(self.root, f"not a RealSense recording (expected a {suffixes} file)")
 
     def _start(self):
         """Start the stream -> (pipeline, aligner or None, colour intrinsics, depth scale, bound on the frame count).
@@ -257,7 +259,8 @@ class RealSenseSequence:
     def _delivered_intrinsics(self, full: Intrinsics) -> Intrinsics:
         d = self.downscale
         if full.width < d or full.height < d:
-            raise DatasetError(self.root, f"dataset.downscale={d} is larger than the image ({full.width}x{full.height})")
+            raise DatasetError(self.root,
+                               f"dataset.downscale={d} is larger than the image ({full.width}x{full.height})")
         cropped = full.with_size(full.width - full.width % d, full.height - full.height % d)
         return cropped.scaled(1.0 / d) if d > 1 else cropped
 

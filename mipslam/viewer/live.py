@@ -192,7 +192,8 @@ class LiveViewer:
         if len(gaussians) and len(est_T_wc):
             T_cw = se3_inverse(capture.est_T_wc[-1])
             out = render_view(gaussians, T_cw, panel_intrinsics(capture.intrinsics), self.render_config, mode="eaa")
-            color = apply_affine_exposure(out.color, capture.exposure[0].to(out.color), capture.exposure[1].to(out.color))
+            log_gain, bias = capture.exposure.to(out.color)
+            color = apply_affine_exposure(out.color, log_gain, bias)
             rendered = to_uint8_image(color.numpy())
         gt_positions, ate = None, None
         if self._gt is not None and self._gt[1].any():
