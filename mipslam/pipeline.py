@@ -457,7 +457,7 @@ def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evalu
             for index in bar:
                 try:
                     timestamp = float(sequence.timestamps[index])
-                except StreamEnded as exc:  # a camera or real-time playback stopped: the sequence ends here
+                except StreamEnded as exc:  # a camera or recording ended: the sequence ends here
                     log.info("%s", exc)
                     break
                 frame_complete = False
