@@ -2,7 +2,9 @@
 errors into exit codes (0 success, 1 unexpected failure, 2 usage/config/data error, 130 Ctrl-C).
 
     mipslam run CONFIG [--preset P] [--set k=v]... [--out DIR [--overwrite]]
+                [--viewer [--viewer-host H] [--viewer-port P]]
     mipslam run --resume RUN_DIR [CONFIG] [--set k=v]...
+    mipslam view RUN_DIR [--host H] [--port P] [--follow] [--map-only] [--screenshot PNG [--size WxH]]
     mipslam eval RUN_DIR [--frames all|keyframes|non_keyframes] [--scales 0.25,1] [--modes point,eaa] [--every K]
                  | --gt GT.txt --est EST.txt
     mipslam export RUN_DIR --mesh mesh.ply [--voxel-size M] [--overwrite]
@@ -68,6 +70,25 @@ def _mode_list(text: str) -> tuple[str, ...]:
     return values
 
 
+def _port(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a port number, got {text!r}") from None
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a port in 0..65535, got {value}")
+    return value
+
+
+def _add_viewer_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--viewer", action="store_true",
+                   help="show the run live in the browser (needs pip install 'mipslam[viewer]')")
+    p.add_argument("--viewer-host", default="127.0.0.1",
+                   help="viewer address (default 127.0.0.1, this machine only; 0.0.0.0 = every interface)")
+    p.add_argument("--viewer-port", type=_port, default=8080,
+                   help="viewer port (default 8080; the next free one when busy)")
+
+
 def _build_parser() -> argparse.ArgumentParser:
     parser = _ArgumentParser(prog="mipslam", description="RGB-D SLAM with an anti-aliased 3D Gaussian map.")
     parser.add_argument("--version", action="version", version=f"mipslam {__version__}")
@@ -86,6 +107,7 @@ def _build_parser() -> argparse.ArgumentParser:
     run.add_argument("--resume", type=Path, metavar="RUN_DIR",
                      help="continue the run in RUN_DIR from its last good checkpoint, with its own config")
     run.add_argument("--no-eval", action="store_true", help="skip the evaluation at the end")
+    _add_viewer_args(run)
 
     ev = sub.add_parser("eval", help="evaluate a run folder, or a pair of TUM trajectory files")
     ev.add_argument("run_dir", nargs="?", type=Path, help="run folder written by 'mipslam run'")
@@ -169,6 +191,17 @@ def _build_parser() -> argparse.ArgumentParser:
                        help="run the jobs as Ray tasks: a local Ray instance, or the cluster at ADDRESS "
                             "(needs pip install 'mipslam[ray]')")
 
+    vw = sub.add_parser("view", help="show a run folder in the browser (map, trajectories, keyframes, loops)")
+    vw.add_argument("run_dir", type=Path, help="run folder written by 'mipslam run'")
+    vw.add_argument("--host", default="127.0.0.1",
+                    help="address to listen on (default 127.0.0.1, this machine only; 0.0.0.0 = every interface)")
+    vw.add_argument("--port", type=_port, default=8080, help="port (default 8080; the next free one when busy)")
+    vw.add_argument("--follow", action="store_true", help="move the view with the frame chosen on the slider")
+    vw.add_argument("--map-only", action="store_true", help="draw the Gaussians alone (no trajectories or cameras)")
+    vw.add_argument("--screenshot", type=Path, metavar="PNG",
+                    help="save a screenshot of the page (headless Chromium) to PNG and exit instead of serving")
+    vw.add_argument("--size", default="960x640", metavar="WxH", help="screenshot size in pixels (default 960x640)")
+
     cf = sub.add_parser("config", help="print the resolved config (file + preset + overrides)")
     cf.add_argument("config", type=Path)
     _add_config_args(cf)
@@ -198,7 +231,8 @@ def _cmd_run(args) -> int:
         folder = RunFolder(args.resume)
         _check_resumable(folder, config_given=args.config is not None)
         config = load_config(args.config or folder.config_yaml, preset=args.preset, overrides=args.overrides)
-        finished = _finished_run_message(folder, config, len(make_sequence(config.dataset)))
+        finished = None if _is_stream(config) else _finished_run_message(folder, config,
+                                                                           len(make_sequence(config.dataset)))
         if finished:
             print(finished)
             return EXIT_OK
@@ -212,20 +246,33 @@ def _cmd_run(args) -> int:
         config = load_config(args.config, preset=args.preset, overrides=args.overrides)
         folder = RunFolder(args.out or _default_run_dir(args.config))
         # What can be checked before a folder is made or an earlier run replaced: the dataset opens, the device exists.
-        make_sequence(config.dataset)
+        if not _is_stream(config):  # a camera is opened once, by the run
+            make_sequence(config.dataset)
         resolve_device(config.run.device)
         existed = prepare_new_run_folder(folder.root, overwrite=args.overwrite)
+    viewer = _start_live_viewer(args, config) if args.viewer else None
     # What is alive now (modules, the config) lives for the whole run: keep it out of the cyclic collector's
     # full passes, each of which would rescan ~200k objects (0.15-0.2 s; 0.4 s of GC in 20 frames -> 0.1 s).
     gc.freeze()
     try:
-        summary = run_slam(config, folder.root, resume=args.resume is not None, evaluate=not args.no_eval)
+        summary = run_slam(config, folder.root, resume=args.resume is not None, evaluate=not args.no_eval,
+                           observer=viewer)
     except BaseException:
+        if viewer is not None:
+            viewer.close()
         if args.resume is None and folder.remove_if_unstarted(remove_root=not existed):
             log.debug("removed %s: the run stopped before its first checkpoint", folder.root)
         raise
     print(summary.describe())
+    if viewer is not None:
+        viewer.finish(summary.run_dir)
+        _serve_until_interrupted(viewer.url, viewer.close)
     return EXIT_OK
+
+
+def _is_stream(config) -> bool:
+    """A camera or a recording played as one: opened once, by the run, and of no fixed length."""
+    return config.dataset.kind in ("realsense", "realsense_bag")
 
 
 def _same_path(a: Path, b: Path) -> bool:
@@ -281,6 +328,63 @@ def _finished_run_message(folder, config, total_frames: int) -> str | None:
         return None
     return (f"{folder.root}: the run is already complete ({done} of {total_frames} frames); nothing to do. "
             f"Evaluate it again with: mipslam eval {folder.root}; or start a new run with --out")
+
+
+def _start_live_viewer(args, config):
+    from mipslam.viewer.live import LiveViewer
+    from mipslam.viewer.server import ViewerOptions
+
+    viewer = LiveViewer(config.render, ViewerOptions(host=args.viewer_host, port=args.viewer_port),
+                        diagnostics=config.run.diagnostics)
+    log.info("viewer: %s (open it in a browser)", viewer.url)
+    return viewer
+
+
+def _serve_until_interrupted(url: str, close) -> None:
+    """Keep the viewer open until Ctrl-C when someone can press it (stdin a terminal); else close it now."""
+    if not sys.stdin.isatty():
+        close()
+        return
+    print(f"viewer: {url} (Ctrl-C to close)", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        close()
+
+
+def _cmd_view(args) -> int:
+    from mipslam.viewer.recorded import RecordedViewer
+    from mipslam.viewer.server import ViewerOptions
+
+    if args.screenshot is not None:
+        from mipslam.viewer.browser import screenshot
+
+        try:
+            width, height = (int(v) for v in args.size.lower().split("x"))
+        except ValueError:
+            raise _UsageError(f"mipslam view: --size expects WIDTHxHEIGHT, e.g. 960x640, got {args.size!r}") from None
+        viewer = RecordedViewer(args.run_dir, ViewerOptions(host="127.0.0.1", port=0, follow=args.follow,
+                                                            map_only=args.map_only))
+        try:
+            out = screenshot(viewer.url, args.screenshot, width=width, height=height,
+                             ready=lambda: viewer.server.clients > 0)
+        finally:
+            viewer.close()
+        print(f"screenshot of {args.run_dir} written to {out}")
+        return EXIT_OK
+    viewer = RecordedViewer(args.run_dir, ViewerOptions(host=args.host, port=args.port, follow=args.follow,
+                                                        map_only=args.map_only))
+    print(f"viewer: {viewer.url} (Ctrl-C to close)", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        return EXIT_OK
+    finally:
+        viewer.close()
 
 
 def _cmd_eval(args) -> int:
@@ -454,7 +558,8 @@ def _cmd_bench(args) -> int:
     return EXIT_OK
 
 
-_COMMANDS = {"bench": _cmd_bench, "run": _cmd_run, "eval": _cmd_eval, "synth": _cmd_synth, "config": _cmd_config, "export": _cmd_export}
+_COMMANDS = {"bench": _cmd_bench, "run": _cmd_run, "eval": _cmd_eval, "synth": _cmd_synth, "config": _cmd_config,
+             "export": _cmd_export, "view": _cmd_view}
 
 
 def _configure_logging(debug: bool, quiet: bool) -> None:

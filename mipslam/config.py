@@ -76,7 +76,7 @@ class RunConfig:
 class DatasetConfig:
     """Which sequence to read and how (intrinsics default to the dataset's own files/presets)."""
 
-    kind: Literal["replica", "tum", "synthetic"] = "synthetic"
+    kind: Literal["replica", "tum", "synthetic", "realsense", "realsense_bag"] = "synthetic"
     path: str = ""
     stride: int = 1
     first_frame: int = 0
@@ -94,6 +94,7 @@ class DatasetConfig:
     # depth nearest) are undistorted at the dataset boundary with the same fx..cy. Unset or [] = none.
     distortion: tuple[float, ...] | None = None
     association_tolerance_s: float = 0.02  # TUM rgb-depth-groundtruth association
+    realtime: bool = False  # realsense_bag: play at the recorded rate, dropping frames (false: every frame)
 
     def __post_init__(self):
         _check(self.stride >= 1, "dataset.stride", "must be >= 1")

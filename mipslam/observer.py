@@ -31,6 +31,7 @@ class Observer:
 
     def __init__(self, *, diagnostics: bool = False):
         self.diagnostics = diagnostics
+        self.frames = None  # the run's FrameCache once attached (:meth:`attach`)
         self.timings: dict[str, list[float]] = {}  # stage -> seconds per frame
         self.frame_index: int | None = None  # the sequence index of the open frame (None between frames)
         self._frame: dict[str, float] | None = None  # the open frame's times
@@ -38,6 +39,11 @@ class Observer:
         self._nested: list[float] = []  # per open stage: seconds of the stages nested in it
 
     # ------------------------------------------------------------------ recording
+
+    def attach(self, frames) -> None:
+        """The frames the run reads (a :class:`~mipslam.datasets.FrameCache`, with ``.sequence``), for observers
+        that show images, such as the live viewer; set when the stages are built."""
+        self.frames = frames
 
     def declare(self, *stages: str) -> None:
         """Stages that get an entry on every frame, even frames they skip (0.0)."""

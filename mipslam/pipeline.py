@@ -12,10 +12,11 @@ resume) is :mod:`mipslam.run_control`; stage timings and diagnostics go to an
 """
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import torch
 
@@ -29,6 +30,8 @@ from mipslam.observer import Observer
 from mipslam.run_control import FrameLoop, PreparedRun, RunSummary, prepare_run, resolve_device, write_checkpoint
 from mipslam.state import FrameRecord, SLAMState
 from mipslam.tracking import Tracker, TrackingResult, track_frame
+
+log = logging.getLogger(__name__)
 
 __all__ = ["run_slam", "process_frame", "Stages", "PipelineHooks", "RunSummary", "resolve_device"]
 
@@ -70,8 +73,10 @@ class Stages:
         loop = (LoopCloser(config.loop, verification_hook=hooks.loop_verification, observer=observer)
                 if config.loop.enabled else None)
         observer.declare("tracking", "keyframe", "mapping", *(("loop", "pgo") if loop is not None else ()))
+        frames = FrameCache(sequence, device, capacity)
+        observer.attach(frames)
         return cls(Tracker(config.tracking, config.render), Mapper(config.mapping, config.render), config.keyframes,
-                   FrameCache(sequence, device, capacity), first_pose(sequence), loop, observer, hooks)
+                   frames, first_pose(sequence), loop, observer, hooks)
 
 
 # ----------------------------------------------------------------------------- one frame
@@ -113,8 +118,8 @@ def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evalu
     stages = Stages.build(config, run.sequence, run.device, hooks, observer)
     started, start_frame = time.perf_counter(), state.next_frame
     with FrameLoop(run, config) as loop:
-        for index in loop:
-            loop.frame_done(process_frame(stages, state, index, float(run.sequence.timestamps[index])))
+        for index, timestamp in loop:
+            loop.frame_done(process_frame(stages, state, index, timestamp))
     write_checkpoint(run.folder, state, config, observer)
     # The refinement shapes this session's outputs, not the checkpoint: a run resumed to go further starts from
     # the state the frames left (as an uninterrupted run would), and resuming a finished run repeats it exactly.
@@ -143,6 +148,9 @@ def _write_outputs(run: PreparedRun, config: Config, evaluate: bool) -> dict | N
     with run.observer.stage("outputs", timed=False):
         write_run_outputs(run.folder, run.state, run.sequence, config, run.observer.timing_summary())
     if not (evaluate and config.run.evaluate_at_end):
+        return None
+    if not run.folder.traj_gt.is_file():  # a camera, a recording, a TUM folder without groundtruth.txt
+        log.info("no ground truth for this sequence: the run is not evaluated")
         return None
     from mipslam.evaluation.run_eval import evaluate_run
 

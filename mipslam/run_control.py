@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from mipslam.checkpoint import load_latest_checkpoint, save_checkpoint
 from mipslam.config import Config, config_to_dict, config_to_yaml
-from mipslam.datasets import RGBDSequence, make_sequence
+from mipslam.datasets import RGBDSequence, StreamEnded, make_sequence
 from mipslam.errors import CheckpointError, ConfigError, DatasetError
 from mipslam.heap import release_free_heap, set_mmap_threshold
 from mipslam.io.run_folder import RunFolder, write_text_atomic
@@ -199,11 +199,19 @@ class FrameLoop:
         self.index: int | None = None
         self.frame_complete = True  # False while a frame is processed: the state is then half-updated
 
-    def __iter__(self) -> Iterator[int]:
+    def __iter__(self) -> Iterator[tuple[int, float]]:
+        """(index, timestamp in seconds) of every frame still to process. A camera or a recording that ends
+        (:class:`~mipslam.datasets.StreamEnded`, raised when its next timestamp is asked for) ends the run
+        there, as the end of a sequence does."""
         for index in range(self.run.state.next_frame, self.total):
+            try:
+                timestamp = float(self.run.sequence.timestamps[index])
+            except StreamEnded as exc:
+                log.info("%s", exc)
+                return
             self.index, self.frame_complete = index, False
             self.run.observer.begin_frame(index)
-            yield index
+            yield index, timestamp
 
     def frame_done(self, record: FrameRecord) -> None:
         """After frame ``record.index``: observer, cadence work, progress; honours a Ctrl-C asked during it."""

@@ -1,10 +1,11 @@
 """RGB-D dataset readers behind one protocol, :class:`RGBDSequence`.
 
 ``make_sequence(cfg.dataset)`` builds the reader that ``dataset.kind`` names (replica | tum |
-synthetic). Every reader validates its folder at construction (lists, poses, files present) and
-reads images lazily on ``seq[i]``; bad input raises :class:`~mipslam.errors.DatasetError` with the
-file (and line). Frames are float32 RGB in [0, 1] ``[H, W, 3]`` and float32 depth in metres
-``[H, W]`` (0 = no measurement); ground truth is camera-to-world, OpenCV axes, float64.
+synthetic | realsense | realsense_bag; the last two need pyrealsense2). Every reader validates its
+folder at construction (lists, poses, files present) and reads images lazily on ``seq[i]``; bad
+input raises :class:`~mipslam.errors.DatasetError` with the file (and line). Frames are float32
+RGB in [0, 1] ``[H, W, 3]`` and float32 depth in metres ``[H, W]`` (0 = no measurement); ground
+truth is camera-to-world, OpenCV axes, float64.
 :class:`FrameCache` keeps the last few frames read, on the run's device (mapping revisits keyframes).
 """
 from __future__ import annotations
@@ -17,6 +18,7 @@ import torch
 
 from mipslam.config import DatasetConfig
 from mipslam.datasets.base import RGBDSequence
+from mipslam.datasets.realsense import StreamEnded
 from mipslam.datasets.images import downscale_color, downscale_depth, read_color, read_depth
 from mipslam.datasets.replica import ReplicaSequence
 from mipslam.datasets.synthetic import SyntheticSequence
@@ -26,12 +28,16 @@ from mipslam.types import Frame
 
 __all__ = [
     "RGBDSequence", "make_sequence", "FrameCache", "ReplicaSequence", "TUMSequence", "SyntheticSequence", "TUM_CAMERAS",
-    "associate_timestamps", "read_color", "read_depth", "downscale_color", "downscale_depth",
+    "associate_timestamps", "StreamEnded", "read_color", "read_depth", "downscale_color", "downscale_depth",
 ]
 
 
 def make_sequence(cfg: DatasetConfig) -> RGBDSequence:
     """The reader for ``cfg.kind`` on ``cfg.path`` (reads only the dataset section of the config)."""
+    if cfg.kind == "realsense":  # dataset.path: the camera's serial number (empty = the first camera)
+        from mipslam.datasets.realsense import RealSenseSequence
+
+        return RealSenseSequence(cfg, live_camera=True)
     if not cfg.path:
         raise DatasetError(None, f"dataset.path is empty; point it at a {cfg.kind} folder with --set dataset.path=DIR")
     root = Path(cfg.path).expanduser()
@@ -41,7 +47,11 @@ def make_sequence(cfg: DatasetConfig) -> RGBDSequence:
         return TUMSequence(root, cfg)
     if cfg.kind == "synthetic":
         return SyntheticSequence(root, cfg)
-    raise DatasetError(root, f"unknown dataset kind {cfg.kind!r}; use replica, tum or synthetic")
+    if cfg.kind == "realsense_bag":
+        from mipslam.datasets.realsense import RealSenseSequence
+
+        return RealSenseSequence(cfg, live_camera=False)
+    raise DatasetError(root, f"unknown dataset kind {cfg.kind!r}; use replica, tum, synthetic, realsense or realsense_bag")
 
 
 class FrameCache:
