@@ -96,8 +96,9 @@ def run_bench(spec: BenchSpec, executor: Executor | None = None) -> BenchOutcome
         with progress.open("a", encoding="utf-8") as handle:
             handle.write(json.dumps(row.to_dict()) + "\n")
         if row.ok:
-            log.info("[%d/%d] %s r%d: %.2f frames/s, ATE %.3f cm, PSNR %s dB", i + 1, len(jobs), row.setting,
+            log.info("[%d/%d] %s r%d: %.2f frames/s, ATE %.3f cm, lost %s, PSNR %s dB", i + 1, len(jobs), row.setting,
                      row.repeat, row.fps or float("nan"), row.ate_rmse_cm or float("nan"),
+                     "–" if row.lost_frames is None else row.lost_frames,
                      "–" if row.psnr_db is None else f"{row.psnr_db:.2f}")
         else:
             log.warning("[%d/%d] %s r%d failed: %s", i + 1, len(jobs), row.setting, row.repeat, row.error)

@@ -253,10 +253,11 @@ def execute_peer_job(job: Job) -> JobResult:
     if error is None:
         start = time.perf_counter()
         try:
+            info = _read_json(job.run_dir / "peer.json")
+            measured = {"frames": info.get("frames"), "fps": _finite(info.get("frames_per_second")),
+                        "lost_frames": info.get("lost_frames")}
             data = evaluate_peer_run(job.run_dir)
-            info = data["peer"]
-            measured = {"frames": info["frames"], "fps": _finite(info.get("frames_per_second")),
-                        "ate_rmse_cm": 100.0 * float(data["trajectory"]["ate"]["rmse"]), **_rpe_and_lost(data)}
+            measured.update({"ate_rmse_cm": 100.0 * float(data["trajectory"]["ate"]["rmse"]), **_rpe_and_lost(data)})
         except MipslamError as exc:
             error = f"evaluation failed: {exc}"
         except (OSError, KeyError, ValueError) as exc:

@@ -9,10 +9,12 @@
 
 A frame whose registration fails (an exception or ``success=False``) gets no pose (it is lost); the
 next frame is registered against the last frame that succeeded (odometry) or the unchanged model
-(dense). Lens distortion is not modelled, as in Open3D's examples and in mipslam.
+(dense). Lens distortion is not modelled, as in Open3D's examples and in mipslam. Open3D's raycast
+needs images of about 160x120 or more (smaller ones leave the model frame empty: every frame is lost).
 """
 from __future__ import annotations
 
+import re
 import time
 
 import numpy as np
@@ -21,6 +23,16 @@ from mipslam.bench.peers.common import PeerRun, peer_frames
 from mipslam.bench.peers.options import Open3DDenseOptions, Open3DOdometryOptions
 
 __all__ = ["run_open3d_dense", "run_open3d_odometry"]
+
+
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+
+
+def _open3d_message(exc: Exception) -> str:
+    """The reason of an Open3D error, without its terminal colours and C++ signature."""
+    lines = [line.strip() for line in _ANSI.sub("", str(exc)).splitlines() if line.strip()]
+    text = lines[-1] if lines else type(exc).__name__
+    return text.rsplit(": ", 1)[-1][:200] if "[Open3D Error]" in text else text[:200]
 
 
 def _intrinsic_matrix(intrinsics) -> np.ndarray:
@@ -58,7 +70,7 @@ def run_open3d_dense(sequence, options: Open3DDenseOptions) -> PeerRun:
                 fitness.append(float(result.fitness))
             except RuntimeError as exc:  # too few correspondences: the frame is lost
                 ok = False
-                failures.append({"position": frame.position, "error": str(exc).strip().splitlines()[-1][:200]})
+                failures.append({"position": frame.position, "error": _open3d_message(exc)})
         if ok:
             model.update_frame_pose(frame.position, o3d.core.Tensor(T_wc))
             model.integrate(input_frame, depth_scale, options.depth_max_m, options.trunc_voxel_multiplier)
