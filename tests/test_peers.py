@@ -212,3 +212,18 @@ def test_orbslam3_runs_with_a_vocabulary_trained_here(tmp_path, replica_room0_pa
     assert job["ok"], job["error"]
     # 10 frames of fr1_xyz: ORB-SLAM3 tracks every frame to a few millimetres (0.35 cm with its own vocabulary)
     assert job["frames"] == 10 and job["lost_frames"] == 0 and job["ate_rmse_cm"] < 1.5
+
+
+def test_cli_peer_usage_errors(tmp_path, capsys):
+    sequence = _tiny(tmp_path)
+    assert main(["bench"]) == 2 and "give SEQUENCE_OR_CONFIG" in capsys.readouterr().err
+    assert main(["bench", str(sequence), "--peers-only", "--out", str(tmp_path / "a")]) == 2
+    assert "--peers-only needs --peers" in capsys.readouterr().err
+    assert main(["bench", str(sequence), "--peers", "orbslam", "--out", str(tmp_path / "b")]) == 2
+    assert "unknown peer 'orbslam'" in capsys.readouterr().err
+    assert main(["bench", str(sequence), "--peers", "open3d", "--peer-set", "open3d_dense.voxel=1",
+                 "--out", str(tmp_path / "c")]) == 2
+    assert "did you mean 'open3d_dense.voxel_size_m'" in capsys.readouterr().err
+    assert main(["bench", "--train-vocab", str(tmp_path / "v.txt")]) == 2
+    assert "needs --vocab-images" in capsys.readouterr().err
+    assert not any((tmp_path / name).exists() for name in ("a", "b", "c", "v.txt"))
