@@ -162,12 +162,12 @@ def test_sweep_table_and_plot_put_each_system_on_a_line():
             _row(1, "fast dataset.stride=2", ("dataset.stride=2",), "mipslam", 2.0, 1),
             _row(2, "orbslam3 dataset.stride=1", ("dataset.stride=1",), "orbslam3", 0.5, 0),
             _row(2, "orbslam3 dataset.stride=1", ("dataset.stride=1",), "orbslam3", 0.7, 2, repeat=1),
-            _row(3, "orbslam3 dataset.stride=2", ("dataset.stride=2",), "orbslam3", None, None)]
+            _row(3, "orbslam3 dataset.stride=2", ("dataset.stride=2",), "orbslam3", None, 3)]
     rows[-1] = JobResult(**{**rows[-1].__dict__, "error": "crashed"})
     summaries = summarize(rows)
     lines = sweep_table(summaries, "dataset.stride", ["1", "2"])
     assert "| `fast` | 1.000 (0) | 2.000 (1) |" in lines
-    assert "| `orbslam3` | 0.600 [0.500–0.700] (1) | failed |" in lines
+    assert "| `orbslam3` | 0.600 [0.500–0.700] (1) | failed (lost 3) |" in lines
     assert plot_sweep(summaries, "dataset.stride", ["1", "2"])[:4] == b"\x89PNG"
 
 

@@ -95,7 +95,8 @@ def bench_json(machine: dict, execution: dict, request: dict, rows: Sequence[Job
             "ate_rmse_cm": "ATE RMSE of all frames after the run's alignment (eval.alignment, se3 by default)",
             "rpe": "RPE RMSE over consecutive matched frames (translation cm, rotation degrees)",
             "lost_frames": "peers: frames without a pose (not in the ATE); mipslam: frames flagged as tracking "
-                           "failures (they keep a motion-model pose and are in the ATE)",
+                           "failures (they keep a motion-model pose and are in the ATE); summarised over every "
+                           "job that reported it, also those whose evaluation failed",
             "peers": "peer systems read the same frames through mipslam's readers (same association and frame "
                      "selection) at the resolution on disk, and are evaluated with the same code and protocol; "
                      "their frames/s counts the peer's own per-frame processing",
@@ -199,7 +200,8 @@ def sweep_table(summaries: Sequence[SettingSummary], key: str, values: list[str]
         for v in values:
             s = by_value.get(v)
             if s is None or s.ate_rmse_cm is None:
-                cells.append("–" if s is None else "failed")
+                lost = "" if s is None or s.lost_frames is None else f" (lost {s.lost_frames.median:.0f})"
+                cells.append("–" if s is None else f"failed{lost}")
             else:
                 lost = "" if s.lost_frames is None else f" ({s.lost_frames.median:.0f})"
                 cells.append(f"{_cell(s.ate_rmse_cm, 3)}{lost}")

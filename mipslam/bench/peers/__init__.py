@@ -90,6 +90,9 @@ def evaluate_peer_run(run_dir: Path) -> dict[str, Any]:
         info = json.loads((run_dir / "peer.json").read_text(encoding="utf-8"))
     except (OSError, json.JSONDecodeError) as exc:
         raise MipslamError(f"{run_dir / 'peer.json'}: missing or unreadable ({exc})") from None
+    if not info.get("poses"):
+        detail = "; ORB-SLAM3 never initialised (too few ORB features?)" if info.get("initialised") is False else ""
+        raise EvaluationError(f"{info.get('peer')} gave no pose: all {info.get('frames')} frames lost{detail}")
     gt_path = run_dir / "traj_gt.txt"
     if not gt_path.is_file():
         raise EvaluationError(f"{gt_path}: the sequence has no ground truth; nothing to compare with")

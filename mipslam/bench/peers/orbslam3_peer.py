@@ -99,8 +99,10 @@ def run_orbslam3(sequence, options: ORBSLAM3Options, work_dir: Path) -> PeerRun:
     finally:
         slam.shutdown()
     trajectory_path = work_dir / "orbslam3_trajectory.txt"
-    slam.save_trajectory_tum(str(trajectory_path))
-    if not trajectory_path.is_file() or trajectory_path.stat().st_size == 0:
+    initialised = any(state in ("OK", "OK_KLT", "RECENTLY_LOST", "LOST") for state in states)
+    if initialised:  # ORB-SLAM3 crashes saving the trajectory of a map it never started
+        slam.save_trajectory_tum(str(trajectory_path))
+    if not initialised or not trajectory_path.is_file() or trajectory_path.stat().st_size == 0:
         stamps, poses, positions = np.zeros(0), np.zeros((0, 4, 4)), np.zeros(0, dtype=np.int64)
     else:
         saved = read_tum_trajectory(trajectory_path)
@@ -110,5 +112,5 @@ def run_orbslam3(sequence, options: ORBSLAM3Options, work_dir: Path) -> PeerRun:
         stamps, poses, positions = timestamps[nearest[close]], saved.T_wc[close], nearest[close].astype(np.int64)
     counts = {s: states.count(s) for s in sorted(set(states))}
     details = {"system": "ORB-SLAM3 RGB-D (pyorbslam3)", "vocabulary": str(vocabulary), "paced_to_timestamps": paced,
-               "tracking_states": counts}
+               "tracking_states": counts, "initialised": initialised}
     return PeerRun(len(seconds), stamps, poses, positions, np.asarray(seconds, dtype=np.float64), start_s, details)
