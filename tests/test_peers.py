@@ -14,7 +14,7 @@ import pytest
 import data_synth
 from mipslam.bench import BenchSpec, JobResult, plan_jobs, plan_settings, resolve_target, summarize
 from mipslam.bench.peers import PeerOptions, parse_peer_sets, parse_peers
-from mipslam.bench.peers.orbslam3_peer import orbslam3_settings_text
+from mipslam.bench.peers.orbslam3_peer import frames_of_saved_poses, orbslam3_settings_text
 from mipslam.bench.peers.vocabulary import (hamming_distances, read_dbow2_header, train_vocabulary,
                                             train_vocabulary_file, write_dbow2_text)
 from mipslam.bench.report import plot_sweep, sweep_table
@@ -97,6 +97,15 @@ def test_orbslam3_settings_hold_the_sequence_camera():
     assert float(lines["Camera1.fx"]) == 500.5 and float(lines["Camera1.cy"]) == 239.5
     assert lines["Camera.width"] == "640" and lines["Camera.fps"] == "30"  # ORB-SLAM3 aborts on a non-integer fps
     assert float(lines["RGBD.DepthMapFactor"]) == 1.0 and float(lines["Camera1.k1"]) == 0.0
+
+
+def test_orbslam3_repeated_lines_are_lost_frames():
+    frames = np.array([10.0, 10.033333, 10.066667, 10.1, 10.133333])
+    # frame 2 lost: its line repeats frame 1's time; frame 4 never written
+    saved = np.array([10.0, 10.033333, 10.033333, 10.1])
+    positions, lines = frames_of_saved_poses(saved, frames)
+    assert positions.tolist() == [0, 1, 3] and lines.tolist() == [0, 1, 3]
+    assert frames_of_saved_poses(np.zeros(0), frames)[0].size == 0
 
 
 # ----------------------------------------------------------------------------- vocabulary

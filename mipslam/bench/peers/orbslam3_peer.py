@@ -23,7 +23,7 @@ from mipslam.bench.peers.options import ORBSLAM3Options
 from mipslam.errors import MipslamError
 from mipslam.io.tum import read_tum_trajectory
 
-__all__ = ["orbslam3_settings_text", "run_orbslam3"]
+__all__ = ["frames_of_saved_poses", "orbslam3_settings_text", "run_orbslam3"]
 
 PACKAGE_HINT = ("pip install 'mipslam[peers]' (installs pyorbslam3, GPL-3.0; Linux x86_64, Python 3.8-3.12) or "
                 "give --peer-python an interpreter that has it")
@@ -56,6 +56,25 @@ def orbslam3_settings_text(intrinsics, options: ORBSLAM3Options) -> str:
 
     lines = ["%YAML:1.0", 'File.version: "1.0"', *(f"{k}: {text(v)}" for k, v in values.items())]
     return "\n".join(lines) + "\n"
+
+
+def frames_of_saved_poses(saved_times: np.ndarray, frame_times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which frame each line of ORB-SLAM3's saved trajectory belongs to. -> (frame positions [M], line numbers [M]).
+
+    ORB-SLAM3 writes the times it was given with 6 decimals, one line per frame; for a frame it lost it
+    repeats the previous line's time and pose, so only the first line of a time is that frame's pose and
+    a frame whose time is missing (or only repeated) has none. saved_times [L], frame_times [N] seconds.
+    """
+    if len(saved_times) == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    nearest = np.abs(saved_times[:, None] - frame_times[None, :]).argmin(axis=1)
+    close = np.abs(frame_times[nearest] - saved_times) < 1e-4
+    first_line: dict[int, int] = {}
+    for line, frame in enumerate(nearest):
+        if close[line]:
+            first_line.setdefault(int(frame), line)
+    positions = np.asarray(sorted(first_line), dtype=np.int64)
+    return positions, np.asarray([first_line[int(p)] for p in positions], dtype=np.int64)
 
 
 def _import_pyorbslam3():
@@ -105,11 +124,9 @@ def run_orbslam3(sequence, options: ORBSLAM3Options, work_dir: Path) -> PeerRun:
     if not initialised or not trajectory_path.is_file() or trajectory_path.stat().st_size == 0:
         stamps, poses, positions = np.zeros(0), np.zeros((0, 4, 4)), np.zeros(0, dtype=np.int64)
     else:
-        saved = read_tum_trajectory(trajectory_path)
-        # ORB-SLAM3 writes the timestamps it was given with 6 decimals: match them back to frames
-        nearest = np.abs(saved.timestamps[:, None] - timestamps[None, :]).argmin(axis=1)
-        close = np.abs(timestamps[nearest] - saved.timestamps) < 1e-4
-        stamps, poses, positions = timestamps[nearest[close]], saved.T_wc[close], nearest[close].astype(np.int64)
+        saved = read_tum_trajectory(trajectory_path, allow_duplicate_timestamps=True)
+        positions, lines = frames_of_saved_poses(saved.timestamps, timestamps)
+        stamps, poses = timestamps[positions], saved.T_wc[lines].reshape(-1, 4, 4)
     counts = {s: states.count(s) for s in sorted(set(states))}
     details = {"system": "ORB-SLAM3 RGB-D (pyorbslam3)", "vocabulary": str(vocabulary), "paced_to_timestamps": paced,
                "tracking_states": counts, "initialised": initialised}
