@@ -6,7 +6,7 @@ A thin scenario over ``mipslam bench``: for each sequence it runs
 
 so every stride is a setting of mipslam and of every peer. Larger strides mean larger motion between
 consecutive frames: where a system's ATE jumps or its lost frames climb, the motion has left its basin
-of convergence. Each bench writes OUT/<sequence>/bench.md (the sweep table: ATE cm and lost frames per
+of convergence. Each bench writes OUT/bench_<sequence>/bench.md (the sweep table: ATE cm and lost frames per
 stride), bench_sweep.png (ATE and lost frames against the stride, a line per system), bench.png and
 bench.json (machine, every run).
 
@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     code = 0
     for sequence in sequences:
         bench = ["bench", str(sequence), "--presets", args.presets, "--sweep", f"dataset.stride={args.strides}",
-                 "--repeat", str(args.repeat), "--out", str(args.out / sequence.name), *args.bench_args]
+                 "--repeat", str(args.repeat), "--out", str(args.out / f"bench_{sequence.name}"), *args.bench_args]
         if args.peers:
             bench += ["--peers", args.peers]
         if args.vocab is not None:

@@ -230,7 +230,9 @@ def plot_bench(summaries: Sequence[SettingSummary]) -> bytes:
         ax = figure.add_subplot(1, 2, k + 1)
         shown = [s for s in summaries if s.fps is not None and getattr(s, metric) is not None]
         if not shown:
-            ax.text(0.5, 0.5, "no successful runs", ha="center", va="center", transform=ax.transAxes)
+            text = "no PSNR: peers render no images" if metric == "psnr_db" and any(
+                x.fps is not None and x.system != "mipslam" for x in summaries) else "no successful runs"
+            ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes)
         for s in shown:
             fps, y = s.fps, getattr(s, metric)
             on = getattr(s, front_attr)
