@@ -162,7 +162,7 @@ def _build_parser() -> argparse.ArgumentParser:
                             "orbslam3 (needs pip install 'mipslam[peers]', GPL-3.0, and --vocab)")
     peers.add_argument("--peers-only", action="store_true", help="run the peers only, no mipslam settings")
     peers.add_argument("--peer-repeat", type=int, default=None, metavar="N",
-                       help="runs per peer setting (default: 3 for orbslam3, 1 for the deterministic open3d peers)")
+                       help="runs per peer setting (default: 3 for orbslam3, 1 for the open3d peers)")
     peers.add_argument("--peer-python", default=None, metavar="PYTHON",
                        help="interpreter of the peer processes (default: this one), e.g. a venv holding pyorbslam3")
     peers.add_argument("--vocab", type=Path, default=None, metavar="FILE",

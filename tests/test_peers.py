@@ -70,7 +70,7 @@ def test_peers_take_the_dataset_sweeps_only(tmp_path):
                                                 "open3d-odometry dataset.stride=1", "open3d-odometry dataset.stride=2"]
     assert all(s.repeats == 1 and s.system == s.peer for s in peer_settings)
     jobs = plan_jobs(spec, settings)
-    assert len(jobs) == 4 * 2 + 4 * 1  # mipslam repeats twice, the deterministic Open3D peers once
+    assert len(jobs) == 4 * 2 + 4 * 1  # mipslam repeats twice, the Open3D peers once
     peer_job = next(j for j in jobs if j.setting.peer == "open3d-dense")
     assert peer_job.run_command[1:3] == ("-m", "mipslam.bench.peers.worker")
     assert "dataset.stride=1" in peer_job.peer_job["overrides"] and peer_job.peer_job["peer"] == "open3d-dense"

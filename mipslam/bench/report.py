@@ -83,7 +83,8 @@ def machine_info(threads: int | list[int]) -> dict[str, Any]:
 
 def bench_json(machine: dict, execution: dict, request: dict, rows: Sequence[JobResult],
                summaries: Sequence[SettingSummary]) -> dict[str, Any]:
-    backends = sorted({f"{r.device} / render {r.render_backend}" for r in rows if r.device is not None and r.system == "mipslam"})
+    backends = sorted({f"{r.device} / render {r.render_backend}" for r in rows
+                       if r.device is not None and r.system == "mipslam"})
     return {
         "format": "mipslam bench 1",
         "machine": {**machine, "backend_used": backends},

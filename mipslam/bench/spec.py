@@ -190,8 +190,8 @@ class BenchSpec:
     timeout_s: per ``mipslam run`` process. python: the interpreter of the job processes.
     peers: peer systems run on the same frames (:mod:`mipslam.bench.peers`); they take the ``dataset.*``
     sweep values (other keys do not concern them). peer_repeat: runs per peer setting (None: each peer's
-    default, 3 for ORB-SLAM3, 1 for the deterministic Open3D peers). peer_python: the peers' interpreter.
-    run_mipslam: False = peers only.
+    default, 3 for ORB-SLAM3, 1 for the Open3D peers, whose runs differ only in the 4th digit).
+    peer_python: the peers' interpreter. run_mipslam: False = peers only.
     """
 
     target: Target

@@ -137,7 +137,8 @@ def summarize(rows: Sequence[JobResult]) -> list[SettingSummary]:
             gaussians=spread([r.gaussians for r in good]), keyframes=spread([r.keyframes for r in good]),
             stage_ms_per_frame={k: v for k, v in stage_spreads.items() if v is not None},
             system=group[0].system, rpe_trans_cm=spread([r.rpe_trans_cm for r in good]),
-            rpe_rot_deg=spread([r.rpe_rot_deg for r in good]), lost_frames=spread([r.lost_frames for r in group]),  # also of rows whose evaluation failed
+            rpe_rot_deg=spread([r.rpe_rot_deg for r in good]),
+            lost_frames=spread([r.lost_frames for r in group]),  # also of rows whose evaluation failed
         ))
 
     def median(s: Spread | None) -> float | None:

@@ -24,7 +24,7 @@ from mipslam.errors import ConfigError, EvaluationError, MipslamError
 __all__ = ["PEERS", "PEER_GROUPS", "PeerOptions", "check_peers_available", "default_peer_repeats",
            "evaluate_peer_run", "parse_peer_sets", "parse_peers"]
 
-# name -> (what it is, default repeats: deterministic systems once, multi-threaded ORB-SLAM3 three times)
+# name -> (what it is, default repeats: Open3D once (its runs differ only in the 4th digit), ORB-SLAM3 three times)
 PEERS: dict[str, tuple[str, int]] = {
     "open3d-dense": ("Open3D dense RGB-D SLAM (t.pipelines.slam, frame-to-model ICP + TSDF, CPU)", 1),
     "open3d-odometry": ("Open3D RGB-D odometry, frame to frame (hybrid photometric + geometric term)", 1),
