@@ -280,6 +280,9 @@ def plot_sweep(summaries: Sequence[SettingSummary], key: str, values: list[str])
         ax.set_ylabel(ylabel)
         if metric == "ate_rmse_cm":
             ax.set_yscale("log")
+        else:  # counts: whole numbers from 0
+            ax.set_ylim(-0.3, max(1.0, ax.get_ylim()[1]))  # points at 0 stay visible
+            ax.yaxis.get_major_locator().set_params(integer=True)
         ax.grid(alpha=0.3)
         if series:
             ax.legend(fontsize=7, loc="best")
