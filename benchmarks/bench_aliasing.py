@@ -17,15 +17,19 @@ A second table varies the EAA node cap (1, 2, 4, 8, 16) and reports PSNR and tim
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import math
 import os
 import statistics
 import sys
 import time
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 
+from mipslam.bench.record import write_benchmark
 from mipslam.render import footprint, project_gaussians, rasterize
 from mipslam.types import Intrinsics
 
@@ -120,9 +124,40 @@ def main(argv=None) -> int:
     parser.add_argument("--exact-order", type=int, default=12, help="Gauss-Legendre order of the ground truth")
     parser.add_argument("--tune", action="store_true", help="also search the EAA constants")
     parser.add_argument("--cache", default="", help="file to keep the ground truth in between runs")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="also write the tables to OUT/aliasing.md with the record (machine, parameters; "
+                             "mipslam.bench.record) in OUT/aliasing.json")
     args = parser.parse_args(argv)
     if args.width % 8 or args.height % 8:
         parser.error("--width and --height must be multiples of 8 (so that 1/8 of them are integers)")
+    if args.out is None:
+        return _tables(args)
+    buffer = io.StringIO()
+    with contextlib.redirect_stdout(_Tee(sys.stdout, buffer)):
+        code = _tables(args)
+    parameters = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+    write_benchmark(args.out, "aliasing", parameters, {"tables_markdown": buffer.getvalue()},
+                    threads=torch.get_num_threads(), markdown=buffer.getvalue(), overwrite=True)
+    return code
+
+
+class _Tee(io.TextIOBase):
+    """Writes to two text streams (the terminal and the record's buffer)."""
+
+    def __init__(self, *streams):
+        self.streams = streams
+
+    def write(self, text: str) -> int:
+        for stream in self.streams:
+            stream.write(text)
+        return len(text)
+
+    def flush(self) -> None:
+        for stream in self.streams:
+            stream.flush()
+
+
+def _tables(args) -> int:
 
     torch.manual_seed(args.seed)
     scene = make_scene(args.width, args.height, args.gaussians, args.seed)

@@ -7,7 +7,8 @@ rendered from the estimated poses against the exact ground truth at the mapping 
 (training views) and on the other frames (novel views), the ATE RMSE of tracking, and the mapping time.
 
 Run: ``.venv/bin/python benchmarks/bench_frequency_loss.py --out bench_out/frequency`` (``--lambdas 0,10,100``
-to choose the weights, ``--quick`` for a smoke run). The table goes to OUT/frequency_loss.md (and .json).
+to choose the weights, ``--quick`` for a smoke run). The table goes to OUT/frequency_loss.md and the record
+(machine, parameters, rows; :mod:`mipslam.bench.record`) to OUT/frequency_loss.json.
 """
 from __future__ import annotations
 
@@ -19,6 +20,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
+
+from mipslam.bench.record import write_benchmark
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -100,13 +104,19 @@ def main(argv: list[str] | None = None) -> int:
     for weight in weights:
         rows.append(_run_one(sequence, args.out, weight, args.overrides))
         logging.getLogger("bench").info("lambda_freq=%g done: %s", weight, rows[-1])
-        (args.out / "frequency_loss.json").write_text(json.dumps(rows, indent=1) + "\n", encoding="utf-8")
+        write_benchmark(args.out, "frequency_loss", _parameters(args), rows, threads=torch.get_num_threads(),
+                        overwrite=True)  # kept after every weight, so an interrupted run keeps what it measured
     title = (f"data_synth {args.trajectory}, {args.frames} frames at {args.width}x{args.height}, "
              f"mean over keyframes (train) and other frames (novel)")
     report = _table(rows, title)
     print(report)
-    (args.out / "frequency_loss.md").write_text(report + "\n", encoding="utf-8")
+    write_benchmark(args.out, "frequency_loss", _parameters(args), rows, threads=torch.get_num_threads(),
+                    markdown=report, overwrite=True)
     return 0
+
+
+def _parameters(args) -> dict:
+    return {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
 
 
 if __name__ == "__main__":

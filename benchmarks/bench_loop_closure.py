@@ -32,7 +32,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import platform  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
@@ -42,6 +41,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 import data_synth  # noqa: E402
+from mipslam.bench.record import write_benchmark  # noqa: E402
 from mipslam.config import load_config  # noqa: E402
 from mipslam.datasets import make_sequence  # noqa: E402
 from mipslam.evaluation.image_metrics import psnr  # noqa: E402
@@ -165,7 +165,9 @@ def main() -> None:
     parser.add_argument("--variants", nargs="*", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--threads", type=int, default=1, help="torch threads of each run (1 on a busy machine)")
     parser.add_argument("--work", type=Path, default=None, help="folder for the sequence and the runs (default: temporary)")
-    parser.add_argument("--out", type=Path, default=None, help="write the raw numbers as JSON")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="write the record (machine, parameters, raw numbers; mipslam.bench.record) to this JSON "
+                             "file, and the table beside it (.md)")
     args = parser.parse_args()
     setting = SETTINGS["quick" if args.quick else "full"]
     with tempfile.TemporaryDirectory() as tmp:
@@ -182,8 +184,8 @@ def main() -> None:
                   f"{r['pruned']} pruned, {r['run_seconds']:.0f} s", flush=True)
     print(table(results))
     if args.out:
-        args.out.write_text(json.dumps({"setting": setting, "machine": platform.processor() or platform.machine(),
-                                        "load_average": os.getloadavg(), "results": results}, indent=2))
+        write_benchmark(args.out.parent, args.out.stem, {**vars(args), "setting": setting}, results,
+                        threads=args.threads, markdown=table(results), overwrite=True)
 
 
 if __name__ == "__main__":

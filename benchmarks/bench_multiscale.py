@@ -26,6 +26,8 @@ import sys
 import time
 from pathlib import Path
 
+from mipslam.bench.record import write_benchmark
+
 REPO = Path(__file__).resolve().parent.parent
 SCALES = (0.125, 0.25, 0.5, 1.0, 2.0)
 MODES = ("point", "mip", "ewa", "eaa")
@@ -195,8 +197,9 @@ def main(argv: list[str] | None = None) -> int:
                                                 args.overrides, results))
     report = "\n\n".join(sections)
     print(report)
-    (args.out / "multiscale.md").write_text(report + "\n", encoding="utf-8")
-    (args.out / "multiscale.json").write_text(json.dumps(results, indent=1) + "\n", encoding="utf-8")
+    parameters = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+    write_benchmark(args.out, "multiscale", parameters, results, threads=torch.get_num_threads(), markdown=report,
+                    overwrite=True)
     return 0
 
 

@@ -10,7 +10,8 @@ without alignment (the gauge keyframe 0 is exact in every method); the median ov
 
 Everything runs single-threaded (OMP/OpenBLAS/torch) so that timings compare and do not depend
 on the other load of a shared machine. Run: ``.venv/bin/python benchmarks/bench_pgo.py``
-(``--quick`` for a smoke run, ``--out results.json`` to keep the raw numbers).
+(``--quick`` for a smoke run, ``--out results.json`` to keep the record: machine, parameters, rows and raw
+numbers as :mod:`mipslam.bench.record` writes them, with the table beside it as ``results.md``).
 """
 from __future__ import annotations
 
@@ -20,8 +21,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
-import json  # noqa: E402
-import platform  # noqa: E402
 import statistics  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -31,6 +30,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from mipslam.bench.record import machine_line, write_benchmark  # noqa: E402
 from mipslam.loop.pose_graph import PoseGraph  # noqa: E402
 from mipslam.loop.solver import PGOOptions, optimize_pose_graph  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the test helpers
@@ -110,23 +110,13 @@ def run_open3d(graph: PoseGraph) -> tuple[torch.Tensor, float, int]:
 
 
 def machine() -> dict:
-    model = "unknown"
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    model = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
+    """The shared machine description (mipslam.bench.record), with the solvers' library versions."""
     import open3d as o3d
     import scipy
 
-    return {
-        "cpu": model, "logical_cpus": os.cpu_count(), "load_average": os.getloadavg(),
-        "python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
-        "scipy": scipy.__version__, "open3d": o3d.__version__, "threads": 1,
-    }
+    from mipslam.bench.report import machine_info
+
+    return {**machine_info(1), "numpy": np.__version__, "scipy": scipy.__version__, "open3d": o3d.__version__}
 
 
 def main() -> None:
@@ -141,8 +131,7 @@ def main() -> None:
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     info = machine()
-    print(f"machine: {info['cpu']}, {info['logical_cpus']} logical CPUs, load {info['load_average']}, "
-          f"single-threaded; torch {info['torch']}, scipy {info['scipy']}, open3d {info['open3d']}")
+    print(f"machine: {machine_line(info)}; scipy {info['scipy']}, open3d {info['open3d']}")
 
     raw: list[dict] = []
     rows: list[dict] = []
@@ -187,19 +176,20 @@ def main() -> None:
             raw.append(dict(scenario=sc.name, method=name, runs=runs))
         print(f"  done {sc.name} ({repeats} seeds), {time.perf_counter() - bench_start:.0f} s elapsed", flush=True)
 
-    print()
-    print("| scenario | method | trans. RMSE [m] | rot. RMSE [deg] | time [s] | outliers pruned | correct loops pruned |")
-    print("|---|---|---:|---:|---:|---:|---:|")
+    lines = ["| scenario | method | trans. RMSE [m] | rot. RMSE [deg] | time [s] | outliers pruned | correct loops pruned |",
+             "|---|---|---:|---:|---:|---:|---:|"]
     for row in rows:
-        print(f"| {row['scenario']} | {row['method']} | {row['translation_rmse_m']:.4f} | {row['rotation_rmse_deg']:.3f} | "
-              f"{row['time_s']:.3f} | {row['outliers_pruned']} | {row['correct_loops_pruned']} |")
-    info["load_average_end"] = os.getloadavg()
-    info["total_seconds"] = time.perf_counter() - bench_start
-    print(f"\ntotal {info['total_seconds']:.0f} s; load average at the end {info['load_average_end']}")
+        lines.append(f"| {row['scenario']} | {row['method']} | {row['translation_rmse_m']:.4f} | "
+                     f"{row['rotation_rmse_deg']:.3f} | {row['time_s']:.3f} | {row['outliers_pruned']} | "
+                     f"{row['correct_loops_pruned']} |")
+    print("\n" + "\n".join(lines))
+    total = time.perf_counter() - bench_start
+    print(f"\ntotal {total:.0f} s; load average at the end {os.getloadavg()}")
     if args.out:
-        with open(args.out, "w", encoding="utf-8") as f:
-            json.dump({"machine": info, "rows": rows, "raw": raw}, f, indent=1)
-
+        out = Path(args.out)
+        write_benchmark(out.parent, out.stem, vars(args), {"rows": rows, "raw": raw, "total_seconds": total,
+                                                           "load_average_end": list(os.getloadavg())},
+                        threads=1, machine=info, markdown="\n".join(lines), overwrite=True)
 
 if __name__ == "__main__":
     main()

@@ -41,7 +41,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -64,7 +63,9 @@ def parse_args(argv=None):
     p.add_argument("--skip-memory", action="store_true")
     p.add_argument("--no-malloc-tuning", action="store_true")
     p.add_argument("--quick", action="store_true", help="160x120, 5000 Gaussians, 3/1 repeats")
-    p.add_argument("--json", type=Path, default=None, help="also write the results here")
+    p.add_argument("--json", type=Path, default=None,
+                   help="also write the record here (machine, parameters, results; mipslam.bench.record) and the "
+                        "table beside it (.md)")
     p.add_argument("--run", type=Path, action="append", default=[],
                    help="a mipslam run folder whose map is rendered for the kernel/glue split (repeatable)")
     p.add_argument("--scales", default="1,2", help="render scales of each --run's intrinsics (1 = mapping size)")
@@ -167,13 +168,9 @@ def measure_memory(args, backend):
 
 
 def cpu_model() -> str:
-    try:
-        for line in subprocess.run(["lscpu"], capture_output=True, text=True, timeout=10).stdout.splitlines():
-            if line.startswith("Model name"):
-                return line.split(":", 1)[1].strip()
-    except (OSError, subprocess.SubprocessError):
-        pass
-    return platform.processor() or "unknown"
+    from mipslam.bench.report import cpu_model as model
+
+    return model()
 
 
 def load_average() -> str:
@@ -297,6 +294,7 @@ def main(argv=None):
     torch = configure_threads(args.threads)
     from mipslam.render import cpu as cpu_backend
     from mipslam.render import footprint, project_gaussians, rasterize
+    from mipslam.bench.record import write_benchmark
     from mipslam.render.rasterize_torch import FootprintSettings
     from mipslam.render import RenderOptions
 
@@ -320,8 +318,8 @@ def main(argv=None):
         print(f"load average {info['load_before']} -> {info['load_after']}")
         print("\n".join(lines))
         if args.json:
-            args.json.parent.mkdir(parents=True, exist_ok=True)
-            args.json.write_text(json.dumps({"info": info, "glue": rows}, indent=2))
+            write_benchmark(args.json.parent, args.json.stem, _parameters(args), {"info": info, "glue": rows},
+                            threads=args.threads, markdown="\n".join(lines), overwrite=True)
         return 0
 
     results = {}
@@ -436,10 +434,15 @@ def main(argv=None):
                if isinstance(v, dict)]
     print("\n".join(lines + glue_lines + detail))
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"info": info, "results": results, "memory_mib": memory,
-                                         "glue": glue_rows}, indent=2))
+        write_benchmark(args.json.parent, args.json.stem, _parameters(args),
+                        {"info": info, "results": results, "memory_mib": memory, "glue": glue_rows},
+                        threads=args.threads, markdown="\n".join(lines + glue_lines + detail), overwrite=True)
     return 0
+
+
+def _parameters(args) -> dict:
+    return {k: (str(v) if isinstance(v, Path) else [str(x) for x in v] if isinstance(v, list) else v)
+            for k, v in vars(args).items()}
 
 
 if __name__ == "__main__":

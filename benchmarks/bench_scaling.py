@@ -34,7 +34,6 @@ over all sizes, and over the upper half of the range (where fixed per-call costs
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import platform
@@ -64,7 +63,9 @@ def parse_args(argv=None):
     p.add_argument("--skip-pgo", action="store_true")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true", help="fewer sizes, 3 repeats (smoke run; not for the docs)")
-    p.add_argument("--json", type=Path, default=None, help="also write the raw results here")
+    p.add_argument("--json", type=Path, default=None,
+                   help="also write the record here (machine, parameters, raw results; mipslam.bench.record) and the "
+                        "tables beside it (.md)")
     args = p.parse_args(argv)
     if args.quick:
         args.repeats, args.pgo_repeats = 3, 3
@@ -315,7 +316,11 @@ def main(argv=None) -> int:
     print("\n".join(lines))
     print(f"\nload average {info['load_before']} -> {info['load_after']}; {info['seconds']:.0f} s in all")
     if args.json:
-        args.json.write_text(json.dumps(out, indent=1, default=str), encoding="utf-8")
+        from mipslam.bench.record import write_benchmark
+
+        parameters = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+        write_benchmark(args.json.parent, args.json.stem, parameters, out, threads=args.threads,
+                        markdown="\n".join(lines), overwrite=True)
     return 0
 
 

@@ -12,6 +12,8 @@ errors into exit codes (0 success, 1 unexpected failure, 2 usage/config/data err
     mipslam config CONFIG [--preset P] [--set k=v]...
     mipslam bench SEQUENCE_OR_CONFIG [--presets fast,balanced,accurate] [--sweep KEY=V1,V2]... [--repeat 3]
                   [--threads 2] [--max-frames N] [--set k=v]... [--out DIR] [--jobs N | --ray [ADDRESS]]
+                  [--peers open3d,orbslam3 [--vocab FILE] [--peers-only] [--peer-repeat N] [--peer-set k=v]...]
+    mipslam bench --train-vocab FILE --vocab-images DIR [DIR...] [--vocab-k 10] [--vocab-levels 5]
 """
 from __future__ import annotations
 
@@ -169,7 +171,7 @@ def _build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--exposure-jitter", type=float, default=0.0, help="per-frame gain/bias jitter")
 
     be = sub.add_parser("bench", help="run presets/sweeps on a sequence, repeated, and tabulate speed against accuracy")
-    be.add_argument("target", type=Path, metavar="SEQUENCE_OR_CONFIG",
+    be.add_argument("target", type=Path, metavar="SEQUENCE_OR_CONFIG", nargs="?",
                     help="a YAML config, or a Replica / TUM / data_synth sequence folder (its configs/<kind>.yaml is used)")
     be.add_argument("--presets", default=None, metavar="P1,P2,...",
                     help="presets to compare, e.g. fast,balanced,accurate ('none' = the config as it is; default none)")
@@ -190,6 +192,29 @@ def _build_parser() -> argparse.ArgumentParser:
     where.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
                        help="run the jobs as Ray tasks: a local Ray instance, or the cluster at ADDRESS "
                             "(needs pip install 'mipslam[ray]')")
+    peers = be.add_argument_group("peers (docs/peers.md)")
+    peers.add_argument("--peers", default=None, metavar="P1,P2",
+                       help="also run established systems on the same frames: open3d (dense SLAM and odometry), "
+                            "orbslam3 (needs pip install 'mipslam[peers]', GPL-3.0, and --vocab)")
+    peers.add_argument("--peers-only", action="store_true", help="run the peers only, no mipslam settings")
+    peers.add_argument("--peer-repeat", type=int, default=None, metavar="N",
+                       help="runs per peer setting (default: 3 for orbslam3, 1 for the open3d peers)")
+    peers.add_argument("--peer-python", default=None, metavar="PYTHON",
+                       help="interpreter of the peer processes (default: this one), e.g. a venv holding pyorbslam3")
+    peers.add_argument("--vocab", type=Path, default=None, metavar="FILE",
+                       help="DBoW2 ORB vocabulary for orbslam3 (make one with --train-vocab)")
+    peers.add_argument("--peer-set", dest="peer_sets", action="append", default=[], metavar="PEER.KEY=VALUE",
+                       help="a peer option, e.g. orbslam3.realtime=false or open3d_dense.voxel_size_m=0.01 (repeatable)")
+    vocab = be.add_argument_group("ORB vocabulary training (no SEQUENCE_OR_CONFIG)")
+    vocab.add_argument("--train-vocab", type=Path, default=None, metavar="FILE",
+                       help="train a DBoW2 ORB vocabulary (ORBvoc.txt format) into FILE and exit")
+    vocab.add_argument("--vocab-images", nargs="+", type=Path, default=[], metavar="DIR",
+                       help="folders of training images, none of them from a sequence the vocabulary will be "
+                            "evaluated on (depth maps are skipped)")
+    vocab.add_argument("--vocab-k", type=int, default=10, help="branching factor (default 10)")
+    vocab.add_argument("--vocab-levels", type=int, default=5, help="depth of the tree (default 5)")
+    vocab.add_argument("--vocab-max-images", type=int, default=0, metavar="N",
+                       help="use at most N training images, evenly spaced (default 0: all)")
 
     vw = sub.add_parser("view", help="show a run folder in the browser (map, trajectories, keyframes, loops)")
     vw.add_argument("run_dir", type=Path, help="run folder written by 'mipslam run'")
@@ -540,15 +565,40 @@ def _check_mesh_target(mesh: Path, run_dir: Path, *, overwrite: bool) -> None:
         raise _UsageError(f"{mesh}: exists; replace it with --overwrite or choose another --mesh")
 
 
+def _cmd_bench_vocab(args) -> int:
+    from mipslam.bench.peers.vocabulary import train_vocabulary_file
+
+    if args.target is not None:
+        raise _UsageError("mipslam bench: --train-vocab takes no SEQUENCE_OR_CONFIG (see 'mipslam bench --help')")
+    if not args.vocab_images:
+        raise _UsageError("mipslam bench: --train-vocab needs --vocab-images DIR [DIR...] (see 'mipslam bench --help')")
+    if args.train_vocab.exists():
+        raise MipslamError(f"{args.train_vocab}: exists; choose another file for --train-vocab or remove it")
+    report = train_vocabulary_file(args.vocab_images, args.train_vocab, k=args.vocab_k, levels=args.vocab_levels,
+                                   max_images=args.vocab_max_images, seed=args.seed)
+    print(report.describe())
+    return EXIT_OK
+
+
 def _cmd_bench(args) -> int:
     from mipslam.bench import (BenchSpec, LocalExecutor, RayExecutor, default_out_dir, parse_presets, parse_sweep,
                                resolve_target, run_bench)
+    from mipslam.bench.peers import parse_peer_sets, parse_peers
 
+    if args.train_vocab is not None:
+        return _cmd_bench_vocab(args)
+    if args.target is None:
+        raise _UsageError("mipslam bench: give SEQUENCE_OR_CONFIG (or --train-vocab FILE) (see 'mipslam bench --help')")
     target = resolve_target(args.target)
+    options = parse_peer_sets(args.peer_sets)
+    if args.vocab is not None:
+        options = parse_peer_sets([f"orbslam3.vocabulary={args.vocab.expanduser().resolve()}"], options)
     spec = BenchSpec(target=target, out_dir=args.out or default_out_dir(target), presets=parse_presets(args.presets),
                      sweeps=tuple(parse_sweep(s) for s in args.sweeps), overrides=tuple(args.overrides),
                      repeat=args.repeat, threads=args.threads, seed=args.seed, max_frames=args.max_frames,
-                     timeout_s=args.timeout)
+                     timeout_s=args.timeout, peers=parse_peers(args.peers), peer_repeat=args.peer_repeat,
+                     peer_python=args.peer_python or sys.executable, peer_options=options,
+                     run_mipslam=not args.peers_only)
     executor = RayExecutor(args.ray or None) if args.ray is not None else LocalExecutor(args.jobs)
     outcome = run_bench(spec, executor)
     print(outcome.describe())

@@ -248,7 +248,7 @@ def test_outputs_from_hand_built_rows(tmp_path):
     assert data["settings"][0]["fps"]["median"] == 4.0 and data["settings"][2]["fps"] is None
     assert data["settings"][1]["pareto_front"] == {"fps_vs_ate": True, "fps_vs_psnr": True}
     md = files.markdown.read_text()
-    assert "Test CPU" in md and "timed out after 5 s" in md and "| `fast` | 3/3 | 4.00 [3.00–5.00] |" in md
+    assert "Test CPU" in md and "timed out after 5 s" in md and "| `fast` | mipslam | 3/3 | 4.00 [3.00–5.00] |" in md
     assert files.plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -317,7 +317,7 @@ def test_bench_end_to_end_with_a_broken_setting(tiny_sequence, tmp_path, capsys)
     assert settings[0]["pareto_front"] == {"fps_vs_ate": True, "fps_vs_psnr": True}
     assert data["machine"]["cpu_model"] and data["machine"]["torch"] and data["machine"]["backend_used"]
     md = (out / "bench.md").read_text()
-    assert "beyond the sequence" in md and f"| `config dataset.first_frame=0` | {repeats}/{repeats} |" in md
+    assert "beyond the sequence" in md and f"| `config dataset.first_frame=0` | mipslam | {repeats}/{repeats} |" in md
     assert (out / "bench.png").read_bytes()[:4] == b"\x89PNG"
     assert data["execution"]["executor"] == "local processes" and data["execution"]["parallel_jobs"] == 1
     good = [j for j in data["jobs"] if j["ok"]]
@@ -336,4 +336,4 @@ def test_bench_on_a_local_ray_instance(tiny_sequence, tmp_path):
     assert len(data["jobs"]) == 1 and data["jobs"][0]["setting"] == "fast"
     _check_good_jobs(data["jobs"])
     assert data["settings"][0]["fps"]["median"] == data["jobs"][0]["fps"]
-    assert "| `fast` | 1/1 |" in (out / "bench.md").read_text() and (out / "bench.png").is_file()
+    assert "| `fast` | mipslam | 1/1 |" in (out / "bench.md").read_text() and (out / "bench.png").is_file()

@@ -53,8 +53,10 @@ class BenchOutcome:
                 return "–" if x is None else f"{x.median:.{digits}f}"
             front = "".join(f for f, on in (("A", s.on_front_ate), ("P", s.on_front_psnr)) if on)
             lines.append(f"  {s.setting}: {med(s.fps, 2)} frames/s, ATE {med(s.ate_rmse_cm, 3)} cm, "
-                         f"PSNR {med(s.psnr_db, 2)} dB ({s.jobs - s.failed}/{s.jobs} ok){' front ' + front if front else ''}")
-        lines.append(f"results: {self.files.json}, {self.files.markdown.name}, {self.files.plot.name}")
+                         f"lost {med(s.lost_frames, 0)}, PSNR {med(s.psnr_db, 2)} dB "
+                         f"({s.jobs - s.failed}/{s.jobs} ok){' front ' + front if front else ''}")
+        names = [self.files.markdown.name, self.files.plot.name, *(p.name for p in self.files.sweep_plots)]
+        lines.append(f"results: {self.files.json}, {', '.join(names)}")
         return "\n".join(lines)
 
 
@@ -65,9 +67,11 @@ def _request(spec: BenchSpec, settings: list[Setting]) -> dict:
         "presets": [p or "none" for p in spec.presets],
         "sweeps": {s.key: list(s.texts) for s in spec.sweeps}, "overrides": list(spec.overrides),
         "repeat": spec.repeat, "threads": spec.threads, "seed": spec.seed, "max_frames": spec.max_frames,
-        "timeout_s": spec.timeout_s,
-        "settings": [{"index": s.index, "label": s.label, "overrides": list(s.overrides), "threads": s.threads,
-                      "seed": s.seed} for s in settings],
+        "timeout_s": spec.timeout_s, "mipslam": spec.run_mipslam,
+        "peers": list(spec.peers), "peer_repeat": spec.peer_repeat, "peer_python": spec.peer_python,
+        "peer_options": {p.replace("-", "_"): spec.peer_options.to_dict()[p.replace("-", "_")] for p in spec.peers},
+        "settings": [{"index": s.index, "label": s.label, "system": s.system, "overrides": list(s.overrides),
+                      "threads": s.threads, "seed": s.seed, "repeats": s.repeats or spec.repeat} for s in settings],
     }
 
 
@@ -85,15 +89,16 @@ def run_bench(spec: BenchSpec, executor: Executor | None = None) -> BenchOutcome
     except OSError as exc:
         raise MipslamError(f"{out_dir}: cannot create the output folder ({exc.strerror or exc})") from None
     progress = out_dir / PROGRESS_FILE
-    log.info("bench: %d settings x %d repeats = %d jobs into %s (%s)", len(settings), spec.repeat, len(jobs), out_dir,
+    log.info("bench: %d settings, %d jobs into %s (%s)", len(settings), len(jobs), out_dir,
              executor.describe()["executor"])
 
     def on_result(i: int, row: JobResult) -> None:
         with progress.open("a", encoding="utf-8") as handle:
             handle.write(json.dumps(row.to_dict()) + "\n")
         if row.ok:
-            log.info("[%d/%d] %s r%d: %.2f frames/s, ATE %.3f cm, PSNR %s dB", i + 1, len(jobs), row.setting,
+            log.info("[%d/%d] %s r%d: %.2f frames/s, ATE %.3f cm, lost %s, PSNR %s dB", i + 1, len(jobs), row.setting,
                      row.repeat, row.fps or float("nan"), row.ate_rmse_cm or float("nan"),
+                     "–" if row.lost_frames is None else row.lost_frames,
                      "–" if row.psnr_db is None else f"{row.psnr_db:.2f}")
         else:
             log.warning("[%d/%d] %s r%d failed: %s", i + 1, len(jobs), row.setting, row.repeat, row.error)

@@ -23,7 +23,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Protocol
 
-from mipslam.bench.spec import EVAL_FILE, Job
+from mipslam.bench.spec import EVAL_FILE, PEER_JOB_FILE, Job
 from mipslam.errors import MipslamError
 
 __all__ = ["Executor", "JobResult", "LocalExecutor", "RayExecutor", "execute_job", "read_job_outputs", "run_jobs"]
@@ -42,6 +42,10 @@ class JobResult:
     wall_s: wall time of the ``mipslam run`` process (start-up and outputs included).
     ate_rmse_cm: ATE RMSE after the run's alignment (se3 by default). psnr_db: training-view PSNR (keyframes,
     mapping resolution, the run's footprint mode). device, torch_threads: from run.json.
+    system: "mipslam" or the peer's name. rpe_trans_cm / rpe_rot_deg: RPE RMSE over consecutive matched
+    frames. lost_frames: frames without a pose (peers) or flagged as tracking failures (mipslam, which keeps
+    a motion-model pose for them). For a peer, fps counts the peer's own per-frame processing (reading
+    images and ORB-SLAM3's pacing excluded).
     """
 
     setting_index: int
@@ -67,6 +71,10 @@ class JobResult:
     device: str | None = None
     torch_threads: int | None = None
     render_backend: str | None = None
+    system: str = "mipslam"
+    rpe_trans_cm: float | None = None
+    rpe_rot_deg: float | None = None
+    lost_frames: int | None = None
 
     @property
     def ok(self) -> bool:
@@ -180,7 +188,18 @@ def read_evaluation(metrics: dict, render_mode: str, where: str) -> dict[str, An
     if row is None:
         unavailable = (metrics.get("render") or {}).get("unavailable", "no render rows")
         raise MipslamError(f"{where}: no PSNR in the evaluation ({unavailable})")
-    return {"ate_rmse_cm": 100.0 * float(ate["rmse"]), "psnr_db": _finite(row.get("psnr"))}
+    return {"ate_rmse_cm": 100.0 * float(ate["rmse"]), "psnr_db": _finite(row.get("psnr")),
+            **_rpe_and_lost(metrics)}
+
+
+def _rpe_and_lost(metrics: dict) -> dict[str, Any]:
+    """RPE RMSE (cm, degrees) and the tracking-failure count of a metrics dict (None where absent)."""
+    trajectory = metrics.get("trajectory") or {}
+    rpe_t = _finite((trajectory.get("rpe_translation") or {}).get("rmse"))
+    rpe_r = _finite((trajectory.get("rpe_rotation") or {}).get("rmse"))
+    lost = (metrics.get("tracking_failures") or metrics.get("lost_frames") or {}).get("count")
+    return {"rpe_trans_cm": None if rpe_t is None else 100.0 * rpe_t, "rpe_rot_deg": rpe_r,
+            "lost_frames": int(lost) if isinstance(lost, int) else None}
 
 
 def evaluate_job_run(run_dir: Path, render_mode: str) -> dict[str, Any]:
@@ -212,10 +231,48 @@ def resolved_render_backend(configured: str, device: str | None) -> str:
     return "cpu (auto)" if "cpu" in available_backends() else "torch (auto)"
 
 
-def execute_job(job: Job) -> JobResult:
-    """Run one job: ``mipslam run`` in a child process, then its evaluation here; read the measurements.
+def execute_peer_job(job: Job) -> JobResult:
+    """Run one peer job: the peer worker in a child process, then mipslam's trajectory evaluation here.
 
     Never raises for the job's own failure: the row carries the error and whatever was measured."""
+    from mipslam.bench.peers import evaluate_peer_run
+
+    setting = job.setting
+    base = dict(setting_index=setting.index, setting=setting.label, preset=None, assignments=setting.assignments,
+                repeat=job.repeat, seed=setting.seed, threads=setting.threads, run_dir=str(job.run_dir),
+                host=platform.node(), system=setting.system, device="cpu", render_backend="-")
+    try:
+        job.run_dir.mkdir(parents=True, exist_ok=True)
+        (job.run_dir / PEER_JOB_FILE).write_text(json.dumps(job.peer_job, indent=2), encoding="utf-8")
+    except OSError as exc:
+        return JobResult(**base, error=f"cannot write {job.run_dir / PEER_JOB_FILE}: {exc}")
+    code, wall, error = _run_process(job.run_command, job.timeout_s, _job_env(setting.threads),
+                                     job.log_dir / f"{job.name}.run.log")
+    measured: dict[str, Any] = {}
+    eval_wall = None
+    if error is None:
+        start = time.perf_counter()
+        try:
+            info = _read_json(job.run_dir / "peer.json")
+            measured = {"frames": info.get("frames"), "fps": _finite(info.get("frames_per_second")),
+                        "lost_frames": info.get("lost_frames")}
+            data = evaluate_peer_run(job.run_dir)
+            measured.update({"ate_rmse_cm": 100.0 * float(data["trajectory"]["ate"]["rmse"]), **_rpe_and_lost(data)})
+        except MipslamError as exc:
+            error = f"evaluation failed: {exc}"
+        except (OSError, KeyError, ValueError) as exc:
+            error = f"evaluation failed: {type(exc).__name__}: {str(exc)[:ERROR_TEXT_LIMIT]}"
+        eval_wall = time.perf_counter() - start
+    return JobResult(**base, error=error, returncode=code, wall_s=wall, eval_wall_s=eval_wall, **measured)
+
+
+def execute_job(job: Job) -> JobResult:
+    """Run one job: ``mipslam run`` in a child process, then its evaluation here; read the measurements.
+    Peer jobs go to :func:`execute_peer_job`.
+
+    Never raises for the job's own failure: the row carries the error and whatever was measured."""
+    if job.setting.peer is not None:
+        return execute_peer_job(job)
     setting = job.setting
     base = dict(setting_index=setting.index, setting=setting.label, preset=setting.preset,
                 assignments=setting.assignments, repeat=job.repeat, seed=setting.seed, threads=setting.threads,
@@ -348,7 +405,8 @@ class RayExecutor:
 def _crashed(job: Job, error: str) -> JobResult:
     s = job.setting
     return JobResult(setting_index=s.index, setting=s.label, preset=s.preset, assignments=s.assignments,
-                     repeat=job.repeat, seed=s.seed, threads=s.threads, run_dir=str(job.run_dir), host="?", error=error)
+                     repeat=job.repeat, seed=s.seed, threads=s.threads, run_dir=str(job.run_dir), host="?", error=error,
+                     system=s.system)
 
 
 def run_jobs(jobs: list[Job], executor: Executor | None = None,

@@ -22,7 +22,7 @@ __all__ = ["BenchFiles", "bench_json", "bench_markdown", "machine_info", "plot_b
 
 log = logging.getLogger(__name__)
 
-BENCH_JSON, BENCH_MD, BENCH_PNG = "bench.json", "bench.md", "bench.png"
+BENCH_JSON, BENCH_MD, BENCH_PNG, SWEEP_PNG = "bench.json", "bench.md", "bench.png", "bench_sweep.png"
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -83,7 +83,8 @@ def machine_info(threads: int | list[int]) -> dict[str, Any]:
 
 def bench_json(machine: dict, execution: dict, request: dict, rows: Sequence[JobResult],
                summaries: Sequence[SettingSummary]) -> dict[str, Any]:
-    backends = sorted({f"{r.device} / render {r.render_backend}" for r in rows if r.device is not None})
+    backends = sorted({f"{r.device} / render {r.render_backend}" for r in rows
+                       if r.device is not None and r.system == "mipslam"})
     return {
         "format": "mipslam bench 1",
         "machine": {**machine, "backend_used": backends},
@@ -93,6 +94,13 @@ def bench_json(machine: dict, execution: dict, request: dict, rows: Sequence[Job
             "fps": "frames / seconds of the SLAM stages (timings.json: start-up and writing outputs excluded)",
             "stage_ms_per_frame": "stage total seconds / frames * 1000 (the stages sum to 1000 / fps)",
             "ate_rmse_cm": "ATE RMSE of all frames after the run's alignment (eval.alignment, se3 by default)",
+            "rpe": "RPE RMSE over consecutive matched frames (translation cm, rotation degrees)",
+            "lost_frames": "peers: frames without a pose (not in the ATE); mipslam: frames flagged as tracking "
+                           "failures (they keep a motion-model pose and are in the ATE); summarised over every "
+                           "job that reported it, also those whose evaluation failed",
+            "peers": "peer systems read the same frames through mipslam's readers (same association and frame "
+                     "selection) at the resolution on disk, and are evaluated with the same code and protocol; "
+                     "their frames/s counts the peer's own per-frame processing",
             "psnr_db": "training-view PSNR: keyframes at the mapping resolution in the run's footprint mode",
             "wall_s": "wall time of the 'mipslam run' process",
             "summary": "median over the repeats without an error; spread as min/max and interquartile range",
@@ -142,25 +150,64 @@ def bench_markdown(data: dict[str, Any], summaries: Sequence[SettingSummary], ro
         "",
     ]
     stages = ordered_stages(s for summary in summaries for s in summary.stage_ms_per_frame)
-    header = ["setting", "ok", "frames/s", "ATE cm", "PSNR dB", *(f"{s} ms" for s in stages), "Gaussians",
-              "keyframes", "wall s", "front"]
+    header = ["setting", "system", "ok", "frames/s", "ATE cm", "RPE cm", "RPE deg", "lost", "PSNR dB",
+              *(f"{s} ms" for s in stages), "Gaussians", "keyframes", "wall s", "front"]
     lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for s in summaries:
         front = "".join(flag for flag, on in (("A", s.on_front_ate), ("P", s.on_front_psnr)) if on) or ""
-        cells = [f"`{_escape(s.setting)}`", f"{s.jobs - s.failed}/{s.jobs}", _cell(s.fps, 2), _cell(s.ate_rmse_cm, 3),
+        cells = [f"`{_escape(s.setting)}`", s.system, f"{s.jobs - s.failed}/{s.jobs}", _cell(s.fps, 2),
+                 _cell(s.ate_rmse_cm, 3), _cell(s.rpe_trans_cm, 3), _cell(s.rpe_rot_deg, 3), _cell(s.lost_frames, 0),
                  _cell(s.psnr_db, 2), *(_cell(s.stage_ms_per_frame.get(st), 1) for st in stages),
                  _cell(s.gaussians, 0), _cell(s.keyframes, 0), _cell(s.wall_s, 1), front]
         lines.append("| " + " | ".join(cells) + " |")
+    sweeps = data["request"].get("sweeps") or {}
+    for key in sweeps:
+        lines += ["", *sweep_table(summaries, key, list(sweeps[key]))]
     failed = [r for r in rows if not r.ok]
     lines += ["", f"## Jobs ({len(rows)}, {len(failed)} failed)", ""]
-    lines += ["| setting | repeat | frames/s | ATE cm | PSNR dB | Gaussians | keyframes | wall s | host | error |",
-              "|---|---|---|---|---|---|---|---|---|---|"]
+    lines += ["| setting | repeat | frames/s | ATE cm | lost | PSNR dB | Gaussians | keyframes | wall s | host | error |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| `{_escape(r.setting)}` | {r.repeat} | {_fmt(r.fps, 2)} | {_fmt(r.ate_rmse_cm, 3)} | "
+                     f"{r.lost_frames if r.lost_frames is not None else '–'} | "
                      f"{_fmt(r.psnr_db, 2)} | {r.gaussians if r.gaussians is not None else '–'} | "
                      f"{r.keyframes if r.keyframes is not None else '–'} | {_fmt(r.wall_s, 1)} | {r.host} | "
                      f"{_escape(r.error) if r.error else ''} |")
     return "\n".join(lines) + "\n"
+
+
+def sweep_series(summaries: Sequence[SettingSummary], key: str, values: list[str]
+                 ) -> dict[str, dict[str, SettingSummary]]:
+    """The settings of a sweep over ``key`` as series: series label (the setting without ``key=...``) ->
+    value text -> summary. Settings that do not take ``key`` (e.g. a peer under a non-dataset sweep) are left out."""
+    series: dict[str, dict[str, SettingSummary]] = {}
+    prefix = f"{key}="
+    for s in summaries:
+        value = next((a[len(prefix):] for a in s.assignments if a.startswith(prefix)), None)
+        if value is None or value not in values:
+            continue
+        rest = " ".join([s.setting.split(" ")[0], *(a for a in s.assignments if not a.startswith(prefix))])
+        series.setdefault(rest, {})[value] = s
+    return series
+
+
+def sweep_table(summaries: Sequence[SettingSummary], key: str, values: list[str]) -> list[str]:
+    """Markdown lines: one row per series, one column per value of ``key``: ATE cm (lost frames)."""
+    series = sweep_series(summaries, key, values)
+    lines = [f"## Sweep of `{key}`: ATE RMSE cm (lost frames), medians over repeats", "",
+             "| system | " + " | ".join(f"{key}={v}" for v in values) + " |", "|---|" + "---|" * len(values)]
+    for name, by_value in series.items():
+        cells = []
+        for v in values:
+            s = by_value.get(v)
+            if s is None or s.ate_rmse_cm is None:
+                lost = "" if s is None or s.lost_frames is None else f" (lost {s.lost_frames.median:.0f})"
+                cells.append("–" if s is None else f"failed{lost}")
+            else:
+                lost = "" if s.lost_frames is None else f" ({s.lost_frames.median:.0f})"
+                cells.append(f"{_cell(s.ate_rmse_cm, 3)}{lost}")
+        lines.append(f"| `{_escape(name)}` | " + " | ".join(cells) + " |")
+    return lines
 
 
 # ----------------------------------------------------------------------------- plot
@@ -184,13 +231,17 @@ def plot_bench(summaries: Sequence[SettingSummary]) -> bytes:
         ax = figure.add_subplot(1, 2, k + 1)
         shown = [s for s in summaries if s.fps is not None and getattr(s, metric) is not None]
         if not shown:
-            ax.text(0.5, 0.5, "no successful runs", ha="center", va="center", transform=ax.transAxes)
+            text = "no PSNR: peers render no images" if metric == "psnr_db" and any(
+                x.fps is not None and x.system != "mipslam" for x in summaries) else "no successful runs"
+            ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes)
         for s in shown:
             fps, y = s.fps, getattr(s, metric)
             on = getattr(s, front_attr)
+            peer = s.system != "mipslam"
             ax.errorbar([fps.median], [y.median], xerr=[[fps.median - fps.min], [fps.max - fps.median]],
-                        yerr=[[y.median - y.min], [y.max - y.median]], fmt="*" if on else "o",
-                        color="#d62728" if on else "#1f77b4", ms=11 if on else 6, capsize=2, lw=0.8)
+                        yerr=[[y.median - y.min], [y.max - y.median]], fmt="*" if on else "s" if peer else "o",
+                        color="#d62728" if on else "#2ca02c" if peer else "#1f77b4", ms=11 if on else 6,
+                        capsize=2, lw=0.8)
             ax.annotate(s.setting, (fps.median, y.median), textcoords="offset points", xytext=(5, 4), fontsize=7)
         front = sorted((s.fps.median, getattr(s, metric).median) for s in shown if getattr(s, front_attr))
         if len(front) > 1:
@@ -200,8 +251,42 @@ def plot_bench(summaries: Sequence[SettingSummary]) -> bytes:
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
     failed = sum(1 for s in summaries if s.fps is None)
-    title = "mipslam bench: medians over repeats, bars min–max, stars on the Pareto front"
+    title = "mipslam bench: medians over repeats, bars min–max, stars on the Pareto front, squares peers"
     figure.suptitle(title + (f" ({failed} setting(s) without a successful run not shown)" if failed else ""), fontsize=9)
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png")
+    return buffer.getvalue()
+
+
+def plot_sweep(summaries: Sequence[SettingSummary], key: str, values: list[str]) -> bytes:
+    """PNG bytes: ATE RMSE and lost frames (y) against the values of ``key`` (x, in the order given), a line per
+    series (mipslam preset or peer), medians with min–max bars; a failed setting leaves a gap."""
+    figure = _figure(11.0, 4.4)
+    series = sweep_series(summaries, key, values)
+    x = list(range(len(values)))
+    for k, (metric, ylabel) in enumerate((("ate_rmse_cm", "ATE RMSE (cm)"), ("lost_frames", "lost frames"))):
+        ax = figure.add_subplot(1, 2, k + 1)
+        for name, by_value in series.items():
+            points = [(i, getattr(by_value[v], metric)) for i, v in enumerate(values)
+                      if v in by_value and getattr(by_value[v], metric) is not None]
+            if not points:
+                continue
+            xs = [p[0] for p in points]
+            med = [p[1].median for p in points]
+            err = [[p[1].median - p[1].min for p in points], [p[1].max - p[1].median for p in points]]
+            ax.errorbar(xs, med, yerr=err, fmt="-o", ms=4, capsize=2, lw=1.0, label=name)
+        ax.set_xticks(x, [str(v) for v in values])
+        ax.set_xlabel(key)
+        ax.set_ylabel(ylabel)
+        if metric == "ate_rmse_cm":
+            ax.set_yscale("log")
+        else:  # counts: whole numbers from 0
+            ax.set_ylim(-0.3, max(1.0, ax.get_ylim()[1]))  # points at 0 stay visible
+            ax.yaxis.get_major_locator().set_params(integer=True)
+        ax.grid(alpha=0.3)
+        if series:
+            ax.legend(fontsize=7, loc="best")
+    figure.suptitle(f"mipslam bench: sweep of {key} (medians over repeats, bars min–max)", fontsize=9)
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png")
     return buffer.getvalue()
@@ -217,6 +302,7 @@ class BenchFiles:
         self.json = self.out_dir / BENCH_JSON
         self.markdown = self.out_dir / BENCH_MD
         self.plot = self.out_dir / BENCH_PNG
+        self.sweep_plots: list[Path] = []
 
 
 def write_outputs(out_dir: Path, machine: dict, execution: dict, request: dict, rows: Sequence[JobResult],
@@ -228,4 +314,9 @@ def write_outputs(out_dir: Path, machine: dict, execution: dict, request: dict, 
     write_json_atomic(files.json, data)
     write_text_atomic(files.markdown, bench_markdown(data, summaries, rows))
     write_bytes_atomic(files.plot, plot_bench(summaries))
+    sweeps = request.get("sweeps") or {}
+    for key, values in sweeps.items():
+        path = files.out_dir / (SWEEP_PNG if len(sweeps) == 1 else f"bench_sweep_{key}.png")
+        write_bytes_atomic(path, plot_sweep(summaries, key, list(values)))
+        files.sweep_plots.append(path)
     return files

@@ -20,6 +20,7 @@ from typing import Any
 
 import yaml
 
+from mipslam.bench.peers import PeerOptions, check_peers_available, default_peer_repeats
 from mipslam.config import CONFIG_DIR, PRESETS, Config, load_config, preset_path
 from mipslam.errors import ConfigError, DatasetError, MipslamError
 
@@ -30,6 +31,7 @@ __all__ = [
 
 NO_PRESET = "none"  # in --presets: the config as it is, without a preset overlay
 EVAL_FILE = "bench_eval.json"  # the evaluation of a bench job, inside its run folder
+PEER_JOB_FILE = "peer_job.json"  # a peer job's description, inside its run folder (the worker's input)
 
 
 # ----------------------------------------------------------------------------- sweeps and presets
@@ -186,6 +188,10 @@ class BenchSpec:
 
     overrides: ``--set`` (win over the bench's own seed/threads/max-frames); sweeps win over both.
     timeout_s: per ``mipslam run`` process. python: the interpreter of the job processes.
+    peers: peer systems run on the same frames (:mod:`mipslam.bench.peers`); they take the ``dataset.*``
+    sweep values (other keys do not concern them). peer_repeat: runs per peer setting (None: each peer's
+    default, 3 for ORB-SLAM3, 1 for the Open3D peers, whose runs differ only in the 4th digit).
+    peer_python: the peers' interpreter. run_mipslam: False = peers only.
     """
 
     target: Target
@@ -199,8 +205,19 @@ class BenchSpec:
     max_frames: int | None = None
     timeout_s: float = 3600.0
     python: str = field(default_factory=lambda: sys.executable)
+    peers: tuple[str, ...] = ()
+    peer_repeat: int | None = None
+    peer_python: str = field(default_factory=lambda: sys.executable)
+    peer_options: PeerOptions = field(default_factory=PeerOptions)
+    run_mipslam: bool = True
 
     def __post_init__(self):
+        if not self.run_mipslam and not self.peers:
+            raise ConfigError("--peers-only needs --peers (e.g. --peers open3d)")
+        if self.peer_repeat is not None and self.peer_repeat < 1:
+            raise ConfigError(f"--peer-repeat {self.peer_repeat}: must be >= 1")
+        if self.peers:
+            check_peers_available(self.peers, self.peer_options, self.peer_python)
         if self.repeat < 1:
             raise ConfigError(f"--repeat {self.repeat}: must be >= 1")
         if self.threads < 1:
@@ -234,16 +251,22 @@ class Setting:
     seed: int  # run.seed of the resolved config
     render_mode: str  # render.mode of the resolved config (the mode the evaluation renders)
     render_backend: str  # render.backend of the resolved config (auto | torch | cpu)
+    peer: str | None = None  # a peer system (mipslam.bench.peers.PEERS) instead of mipslam
+    repeats: int | None = None  # runs of this setting (None: the bench's --repeat)
+
+    @property
+    def system(self) -> str:
+        return self.peer or "mipslam"
 
     @property
     def label(self) -> str:
-        parts = [self.preset or "config", *self.assignments]
+        parts = [self.peer or self.preset or "config", *self.assignments]
         return " ".join(parts)
 
     @property
     def slug(self) -> str:
         return f"s{self.index:02d}-" + re.sub(r"[^A-Za-z0-9_.=-]+", "_", "-".join(
-            [self.preset or "config", *(a.split(".", 1)[-1] for a in self.assignments)]))[:80]
+            [self.peer or self.preset or "config", *(a.split(".", 1)[-1] for a in self.assignments)]))[:80]
 
 
 @dataclass(frozen=True)
@@ -256,6 +279,7 @@ class Job:
     log_dir: Path
     run_command: tuple[str, ...]
     timeout_s: float
+    peer_job: dict | None = field(default=None, compare=False)  # a peer's job description (worker JOB.json)
 
     @property
     def name(self) -> str:
@@ -263,10 +287,11 @@ class Job:
 
 
 def plan_settings(spec: BenchSpec) -> list[Setting]:
-    """Presets x sweep values (cartesian product, in the order given), each config resolved and validated."""
+    """Presets x sweep values (cartesian product, in the order given), each config resolved and validated;
+    then every peer x the values of the ``dataset.*`` sweeps."""
     value_lists = [s.assignments() for s in spec.sweeps]
     settings = []
-    for combo in product(spec.presets, *value_lists):
+    for combo in product(spec.presets if spec.run_mipslam else (), *value_lists):
         preset, assignments = combo[0], tuple(combo[1:])
         overrides = (*spec.target.base_overrides, *spec.bench_overrides(), *spec.overrides, *assignments)
         label = " ".join([preset or "config", *assignments])
@@ -276,6 +301,18 @@ def plan_settings(spec: BenchSpec) -> list[Setting]:
             raise ConfigError(f"bench setting '{label}': {exc}") from None
         settings.append(Setting(len(settings), preset, assignments, overrides, config.run.threads, config.run.seed,
                                 config.render.mode, config.render.backend))
+    dataset_lists = [s.assignments() for s in spec.sweeps if s.key.startswith("dataset.")]
+    for peer in spec.peers:
+        repeats = spec.peer_repeat or default_peer_repeats(peer)
+        for assignments in product(*dataset_lists):
+            overrides = (*spec.target.base_overrides, *spec.bench_overrides(), *spec.overrides, *assignments)
+            label = " ".join([peer, *assignments])
+            try:
+                config = load_config(spec.target.config_path, overrides=list(overrides))
+            except ConfigError as exc:
+                raise ConfigError(f"bench setting '{label}': {exc}") from None
+            settings.append(Setting(len(settings), None, tuple(assignments), overrides, config.run.threads,
+                                    config.run.seed, "-", "-", peer=peer, repeats=repeats))
     return settings
 
 
@@ -284,10 +321,20 @@ def plan_jobs(spec: BenchSpec, settings: list[Setting] | None = None) -> list[Jo
     settings = plan_settings(spec) if settings is None else settings
     out = Path(spec.out_dir).resolve()
     jobs = []
-    for repeat in range(spec.repeat):
+    most = max([spec.repeat if s.repeats is None else s.repeats for s in settings], default=0)
+    for repeat in range(most):
         for setting in settings:
+            if repeat >= (spec.repeat if setting.repeats is None else setting.repeats):
+                continue
             name = f"{setting.slug}-r{repeat}"
             run_dir = out / "runs" / name
+            if setting.peer is not None:
+                peer_job = {"peer": setting.peer, "config": str(spec.target.config_path), "preset": None,
+                            "overrides": list(setting.overrides), "out": str(run_dir),
+                            "options": spec.peer_options.to_dict()}
+                command = (spec.peer_python, "-m", "mipslam.bench.peers.worker", str(run_dir / PEER_JOB_FILE))
+                jobs.append(Job(setting, repeat, run_dir, out / "logs", command, spec.timeout_s, peer_job))
+                continue
             run_command = [spec.python, "-m", "mipslam.cli", "-q", "run", str(spec.target.config_path)]
             if setting.preset:
                 run_command += ["--preset", setting.preset]

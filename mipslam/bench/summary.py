@@ -70,6 +70,10 @@ class SettingSummary:
     stage_ms_per_frame: dict[str, Spread] = field(default_factory=dict)
     on_front_ate: bool = False
     on_front_psnr: bool = False
+    system: str = "mipslam"
+    rpe_trans_cm: Spread | None = None
+    rpe_rot_deg: Spread | None = None
+    lost_frames: Spread | None = None
 
     def to_dict(self) -> dict[str, Any]:
         def d(value):
@@ -80,7 +84,8 @@ class SettingSummary:
             "assignments": list(self.assignments), "jobs": self.jobs, "failed": self.failed,
             "errors": list(self.errors), "fps": d(self.fps), "ate_rmse_cm": d(self.ate_rmse_cm),
             "psnr_db": d(self.psnr_db), "wall_s": d(self.wall_s), "gaussians": d(self.gaussians),
-            "keyframes": d(self.keyframes),
+            "keyframes": d(self.keyframes), "system": self.system, "rpe_trans_cm": d(self.rpe_trans_cm),
+            "rpe_rot_deg": d(self.rpe_rot_deg), "lost_frames": d(self.lost_frames),
             "stage_ms_per_frame": {k: v.to_dict() for k, v in self.stage_ms_per_frame.items()},
             "pareto_front": {"fps_vs_ate": self.on_front_ate, "fps_vs_psnr": self.on_front_psnr},
         }
@@ -131,6 +136,9 @@ def summarize(rows: Sequence[JobResult]) -> list[SettingSummary]:
             psnr_db=spread([r.psnr_db for r in good]), wall_s=spread([r.wall_s for r in good]),
             gaussians=spread([r.gaussians for r in good]), keyframes=spread([r.keyframes for r in good]),
             stage_ms_per_frame={k: v for k, v in stage_spreads.items() if v is not None},
+            system=group[0].system, rpe_trans_cm=spread([r.rpe_trans_cm for r in good]),
+            rpe_rot_deg=spread([r.rpe_rot_deg for r in good]),
+            lost_frames=spread([r.lost_frames for r in group]),  # also of rows whose evaluation failed
         ))
 
     def median(s: Spread | None) -> float | None:
