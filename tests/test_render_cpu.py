@@ -4,6 +4,7 @@ fallback when the library is missing or stale."""
 from __future__ import annotations
 
 import logging
+import os
 import re
 import shutil
 import subprocess
@@ -282,7 +283,7 @@ def test_build_flags_are_portable():
     for isa in cpu_build.isas():
         flags = cpu_build.compile_command(isa, Path("out.so"))
         assert not any(f.startswith("-march") or f == "-mtune=native" for f in flags
-                       if f not in cpu_backend.library.os.environ.get("MIPSLAM_CPU_CFLAGS", "").split())
+                       if f not in os.environ.get("MIPSLAM_CPU_CFLAGS", "").split())
         assert ("-mavx2" in flags and "-mfma" in flags) == (isa == "avx2")
         assert "-ffast-math" not in flags  # the kernels rely on IEEE comparisons and the exp rounding trick
     assert cpu_build.isas()[0] == "baseline"
@@ -294,6 +295,15 @@ def built_libraries():
     if not isas:
         pytest.skip("the C++ rasterizer is not built here (python -m mipslam.render.cpu.build)")
     return isas
+
+
+def test_the_libraries_are_built_and_current_where_a_compiler_exists():
+    """./scripts/setup (or pip install) built the libraries of this platform from these sources; without
+    this, every test below would skip and the pipeline would silently render with torch."""
+    if shutil.which(cpu_build.compiler()[0]) is None:
+        pytest.skip("no C++ compiler here: the torch backend is used")
+    stale = [cpu_build.library_path(isa).name for isa in cpu_build.isas() if not cpu_build.is_current(isa)]
+    assert not stale, f"missing or stale: {stale}; run python -m mipslam.render.cpu.build"
 
 
 @pytest.mark.parametrize("isa", ["baseline", "avx2"])
@@ -326,7 +336,7 @@ def test_the_loaded_library_matches_this_cpu(ext):
         assert ext.cpu_supports_avx2_fma() and "avx2 fma" in ext.build_info()
     elif "avx2" in cpu_build.isas() and cpu_build.is_current("avx2"):
         assert not ext.cpu_supports_avx2_fma() or \
-            cpu_library.os.environ.get("MIPSLAM_CPU_ISA", "").strip().lower() == "baseline"
+            os.environ.get("MIPSLAM_CPU_ISA", "").strip().lower() == "baseline"
 
 
 def test_baseline_build_equals_the_torch_reference(ext):
@@ -612,4 +622,4 @@ def test_profile_kernels_times_each_extension_call(ext):
     assert forward.calls == {"project_forward": 1, "rasterize_forward": 1}
     assert backward.calls == {"rasterize_backward": 1, "project_backward": 1}
     assert forward.total > 0 and backward.total > 0
-    assert not isinstance(cpu_backend.load_extension(), cpu_backend._TimedExtension)
+    assert not isinstance(cpu_backend.load_extension(), cpu_library._TimedExtension)
