@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import dataclasses
+import functools
 import logging
 import os
 import threading
@@ -53,13 +54,24 @@ _SIGNATURES = {
 }
 
 
+# [16] indices into (W row-major [9], t [3], 0) that give the 4x4 viewmat gradient [[W, t], [0, 0, 0, 0]].
+_VIEWMAT_LAYOUT = torch.tensor([0, 1, 2, 9, 3, 4, 5, 10, 6, 7, 8, 11, 12, 12, 12, 12])
+
+
+@functools.lru_cache(maxsize=64)
+def _param_array(params: tuple) -> ctypes.Array:
+    """The projection's parameter vector as a C double array (one per option set; read-only in C)."""
+    return (ctypes.c_double * len(params))(*params)
+
+
 def _ptr(t: torch.Tensor | None) -> int | None:
     return None if t is None else t.data_ptr()
 
 
 def _check(t: torch.Tensor, name: str, dtype: torch.dtype, shape: tuple) -> None:
-    """The C side trusts these: wrong ones would read out of bounds."""
-    if t.device.type != "cpu" or t.dtype != dtype or not t.is_contiguous() or tuple(t.shape) != tuple(shape):
+    """The C side trusts these: wrong ones would read out of bounds. (Sub-microsecond attribute tests: this
+    runs ~40 times per render.)"""
+    if not t.is_cpu or t.dtype != dtype or not t.is_contiguous() or t.shape != shape:
         raise RuntimeError(f"mipslam cpu rasterizer: {name} must be a contiguous CPU {dtype} tensor of shape "
                            f"{list(shape)}, got {t.dtype} {list(t.shape)} on {t.device}")
 
@@ -131,7 +143,7 @@ class Library:
         means2d, cov = torch.empty(n, 2, dtype=dtype), torch.empty(n, 4, dtype=dtype)
         depth, opacity, radii = (torch.empty(n, dtype=dtype) for _ in range(3))
         nodes, visible = torch.empty(n, dtype=torch.int32), torch.empty(n, dtype=torch.bool)
-        p = (ctypes.c_double * len(params))(*params)
+        p = _param_array(params)
         n_visible = ctypes.c_int64(0)
         self._call(self._lib.mipslam_project_forward, int(dtype == torch.float64), *map(_ptr, ins[:5]), n,
                    colors.shape[1], *map(_ptr, ins[5:]), int(width), int(height), p, len(params), int(threads),
@@ -155,18 +167,13 @@ class Library:
             grads.append(g)
         outs = [torch.empty(n, 3, dtype=dtype), torch.empty(n, 4, dtype=dtype), torch.empty(n, 3, dtype=dtype),
                 torch.empty(n, dtype=dtype)] if need_params else [None] * 4
-        g_view = torch.zeros(12, dtype=torch.float64)
-        p = (ctypes.c_double * len(params))(*params)
+        g_view = torch.zeros(13, dtype=torch.float64)  # rotation row-major, translation; [12] stays 0
+        p = _param_array(params)
         self._call(self._lib.mipslam_project_backward, int(dtype == torch.float64), *map(_ptr, ins[:5]), n,
                    colors.shape[1], *map(_ptr, ins[5:]), int(width), int(height), p, len(params), _ptr(visible),
                    *map(_ptr, grads), int(need_params), int(need_viewmat), int(threads), *map(_ptr, outs),
                    _ptr(g_view))
-        g_viewmat = None
-        if need_viewmat:
-            g_viewmat = torch.zeros(4, 4, dtype=torch.float64)
-            g_viewmat[:3, :3] = g_view[:9].reshape(3, 3)
-            g_viewmat[:3, 3] = g_view[9:]
-            g_viewmat = g_viewmat.to(dtype)
+        g_viewmat = g_view[_VIEWMAT_LAYOUT].view(4, 4).to(dtype) if need_viewmat else None
         return (*outs, g_viewmat)
 
     # --- tile rasterizer ------------------------------------------------------------------------------
