@@ -25,7 +25,6 @@ from pathlib import Path
 import torch
 
 from mipslam.errors import BackendUnavailableError, RenderError
-from mipslam.render.cpu import build
 
 log = logging.getLogger("mipslam.render.cpu")
 
@@ -263,7 +262,7 @@ class Library:
 # Loading (once per process)
 # ------------------------------------------------------------------------------------------------
 #: Where the built libraries are looked for: next to the sources (setup.py and build.py put them there).
-LIBRARY_DIR = build.SOURCE_DIR
+LIBRARY_DIR = Path(__file__).resolve().parent
 _lock = threading.Lock()
 _state: dict = {"library": None, "reason": None, "tried": False, "timed": None}
 
@@ -275,6 +274,8 @@ def _disabled() -> bool:
 def load_library(isa: str, folder: Path | None = None) -> Library:
     """Load the build of ``isa`` from ``folder`` (default :data:`LIBRARY_DIR`) after checking that it is current and speaks this ABI.
     Raises BackendUnavailableError with the reason."""
+    from mipslam.render.cpu import build  # here, so that python -m mipslam.render.cpu.build runs it fresh
+
     folder = LIBRARY_DIR if folder is None else Path(folder)
     path = build.library_path(isa, folder)
     if not path.is_file():
@@ -290,6 +291,8 @@ def load_library(isa: str, folder: Path | None = None) -> Library:
 
 
 def _load() -> Library:
+    from mipslam.render.cpu import build
+
     if _disabled():
         raise BackendUnavailableError("the cpu backend is disabled by MIPSLAM_CPU_BACKEND=0")
     baseline = load_library("baseline")
