@@ -103,11 +103,12 @@ def prepare_run(config: Config, run_dir: str | Path, *, resume: bool, observer: 
 
 
 def warm_up(config: Config, device: torch.device) -> None:
-    """Load the renderer's compiled CPU backend now (a first use may compile it), not inside the first frame."""
-    from mipslam.render import available_backends
+    """Load the renderer's compiled CPU backend (built at install; never compiled here) before the first frame,
+    so no stage's time includes it."""
+    from mipslam.render.cpu import warm_up as warm_up_renderer
 
     if config.render.backend != "torch" and device.type == "cpu":
-        available_backends()
+        warm_up_renderer()
 
 
 def write_checkpoint(folder: RunFolder, state: SLAMState, config: Config, observer: Observer) -> Path:

@@ -16,14 +16,12 @@
 // any thread count and schedule.
 #pragma once
 
-#include <torch/extension.h>
+#include "check.h"
 
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <limits>
-#include <optional>
-#include <tuple>
 #include <vector>
 
 #ifdef _OPENMP
@@ -445,23 +443,21 @@ static inline void project_row_backward(const ProjectionSettings<T>& S, const Pr
 }
 
 // ---------------------------------------------------------------------------------------------
-// Host side
+// Host side (raw pointers of contiguous CPU arrays; the Python side checks shapes and dtypes)
 // ---------------------------------------------------------------------------------------------
+// The camera's values; a bad camera throws std::invalid_argument (a RenderError in Python).
 template <typename T>
-static ProjectionSettings<T> projection_settings(const at::Tensor& viewmat, const at::Tensor& K,
-                                                 const at::Tensor* rate, int64_t width, int64_t height,
-                                                 const std::vector<double>& p) {
-    TORCH_CHECK(p.size() == (size_t)P_COUNT, "mipslam fused projection: expected ", (int)P_COUNT,
-                " parameters, got ", p.size());
-    const T* v = viewmat.data_ptr<T>();
-    const T* k = K.data_ptr<T>();
+static ProjectionSettings<T> projection_settings(const T* v, const T* k, const T* rate, int64_t width,
+                                                 int64_t height, const double* p, int64_t n_params) {
+    MIPSLAM_CHECK(n_params == (int64_t)P_COUNT, "mipslam fused projection: expected ", (int)P_COUNT,
+                  " parameters, got ", n_params);
     bool finite = true;
     for (int e = 0; e < 16; ++e) finite = finite && std::isfinite(v[e]);
     for (int e = 0; e < 9; ++e) finite = finite && std::isfinite(k[e]);
-    TORCH_CHECK_VALUE(finite, "rasterize: viewmat and K must be finite (a NaN pose cannot be rendered; check the "
-                              "tracking result that produced it)");
-    TORCH_CHECK_VALUE(k[0] > 0 && k[4] > 0, "rasterize: focal lengths must be positive, got fx=", (double)k[0],
-                      ", fy=", (double)k[4]);
+    MIPSLAM_CHECK_VALUE(finite, "rasterize: viewmat and K must be finite (a NaN pose cannot be rendered; check the "
+                                "tracking result that produced it)");
+    MIPSLAM_CHECK_VALUE(k[0] > 0 && k[4] > 0, "rasterize: focal lengths must be positive, got fx=", (double)k[0],
+                        ", fy=", (double)k[4]);
     ProjectionSettings<T> S;
     S.fx = k[0];
     S.fy = k[4];
@@ -493,7 +489,7 @@ static ProjectionSettings<T> projection_settings(const at::Tensor& viewmat, cons
     S.extent_dilation = (T)p[P_EXTENT_DILATION];
     S.filter = p[P_FILTER_SCALE] != 0.0;
     S.filter_scale = (T)p[P_FILTER_SCALE];
-    S.sampling_rate = rate != nullptr ? rate->data_ptr<T>() : nullptr;
+    S.sampling_rate = rate;
     S.dilation = (T)p[P_DILATION];
     S.dilation_sq = (T)p[P_DILATION_SQ];
     S.energy = p[P_ENERGY] != 0.0;
@@ -508,50 +504,8 @@ static ProjectionSettings<T> projection_settings(const at::Tensor& viewmat, cons
     return S;
 }
 
-struct ProjectionTensors {
-    at::Tensor means, quats, scales, opacities, colors, viewmat, K, rate;
-    bool has_rate;
-};
-
-static ProjectionTensors projection_tensors(const at::Tensor& means, const at::Tensor& quats,
-                                            const at::Tensor& scales, const at::Tensor& opacities,
-                                            const at::Tensor& colors, const at::Tensor& viewmat, const at::Tensor& K,
-                                            const std::optional<at::Tensor>& rate) {
-    const auto dtype = means.scalar_type();
-    TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "mipslam fused projection: float32 or float64 inputs");
-    const int64_t n = means.size(0);
-    auto prep = [&](const at::Tensor& t, const char* name, int64_t cols) {
-        TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == dtype, "mipslam fused projection: ", name,
-                    " must be a CPU tensor of the means' dtype");
-        TORCH_CHECK(t.size(0) == n && (cols < 0 ? t.dim() == 1 : (t.dim() == 2 && t.size(1) == cols)),
-                    "mipslam fused projection: ", name, " has the wrong shape");
-        return t.contiguous();
-    };
-    ProjectionTensors out;
-    TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "mipslam fused projection: means must be [N, 3]");
-    out.means = prep(means, "means", 3);
-    out.quats = prep(quats, "quats", 4);
-    out.scales = prep(scales, "scales", 3);
-    out.opacities = prep(opacities, "opacities", -1);
-    TORCH_CHECK(colors.dim() == 2, "mipslam fused projection: colors must be [N, C]");
-    out.colors = prep(colors, "colors", colors.size(1));
-    TORCH_CHECK(viewmat.numel() == 16 && K.numel() == 9 && viewmat.scalar_type() == dtype &&
-                    K.scalar_type() == dtype && viewmat.device().is_cpu() && K.device().is_cpu(),
-                "mipslam fused projection: viewmat [4, 4] and K [3, 3] in the means' dtype");
-    out.viewmat = viewmat.contiguous();
-    out.K = K.contiguous();
-    out.has_rate = rate.has_value() && rate->defined();
-    if (out.has_rate) out.rate = prep(*rate, "max_sampling_rate", -1);
-    return out;
-}
-
-template <typename T>
-static ProjectionInputs<T> projection_inputs(const ProjectionTensors& t) {
-    return ProjectionInputs<T>{t.means.data_ptr<T>(), t.quats.data_ptr<T>(), t.scales.data_ptr<T>(),
-                               t.opacities.data_ptr<T>(), t.colors.data_ptr<T>(), t.means.size(0),
-                               t.colors.size(1)};
-}
-
+// Writes means2d [N, 2], depth [N], cov [N, 4] (the mode's xx, xy, yy, det), opacity [N] (the mode's),
+// nodes [N] int32, visible [N] bool, radii [N]; returns the number of visible Gaussians.
 template <typename T>
 static int64_t project_forward_impl(const ProjectionSettings<T>& S, const ProjectionInputs<T>& in, int threads,
                                     T* means2d, T* depth, T* cov, T* opacity, int32_t* nodes, bool* visible,
@@ -588,33 +542,9 @@ static int64_t project_forward_impl(const ProjectionSettings<T>& S, const Projec
     return n_visible;
 }
 
-// Returns means2d [N, 2], depth [N], cov [N, 4] (the mode's xx, xy, yy, det), opacity [N] (the mode's),
-// node_counts [N] int32, visible [N] bool, radii [N], n_visible.
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, int64_t>
-project_forward(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
-                const at::Tensor& opacities, const at::Tensor& colors, const at::Tensor& viewmat, const at::Tensor& K,
-                const std::optional<at::Tensor>& max_sampling_rate, int64_t width, int64_t height,
-                const std::vector<double>& params, int64_t threads) {
-    const ProjectionTensors t = projection_tensors(means, quats, scales, opacities, colors, viewmat, K,
-                                                   max_sampling_rate);
-    const int64_t n = t.means.size(0);
-    const auto opts = t.means.options();
-    at::Tensor means2d = at::empty({n, 2}, opts), depth = at::empty({n}, opts), cov = at::empty({n, 4}, opts),
-               opacity = at::empty({n}, opts), radii = at::empty({n}, opts);
-    at::Tensor nodes = at::empty({n}, opts.dtype(at::kInt)), visible = at::empty({n}, opts.dtype(at::kBool));
-    int64_t n_visible = 0;
-    AT_DISPATCH_FLOATING_TYPES(t.means.scalar_type(), "project_forward", [&] {
-        const auto S = projection_settings<scalar_t>(t.viewmat, t.K, t.has_rate ? &t.rate : nullptr, width, height,
-                                                     params);
-        pybind11::gil_scoped_release no_gil;
-        n_visible = project_forward_impl<scalar_t>(
-            S, projection_inputs<scalar_t>(t), (int)threads, means2d.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
-            cov.data_ptr<scalar_t>(), opacity.data_ptr<scalar_t>(), nodes.data_ptr<int32_t>(),
-            visible.data_ptr<bool>(), radii.data_ptr<scalar_t>());
-    });
-    return {means2d, depth, cov, opacity, nodes, visible, radii, n_visible};
-}
-
+// Gradients of means [N, 3], quats [N, 4], scales [N, 3], opacities [N] (written when need_params) and of the
+// viewmat's rotation and translation (g_viewmat [12]: W row-major then t, accumulated when need_viewmat) from
+// those of the outputs of project_forward_impl (a null incoming gradient counts as zero).
 template <typename T>
 static void project_backward_impl(const ProjectionSettings<T>& S, const ProjectionInputs<T>& in, int threads,
                                   const bool* visible, const T* g_means2d, const T* g_depth, const T* g_cov,
@@ -655,59 +585,6 @@ static void project_backward_impl(const ProjectionSettings<T>& S, const Projecti
     if (need_viewmat)
         for (int64_t b = 0; b < blocks; ++b)
             for (int e = 0; e < 12; ++e) g_viewmat[e] += partial[(size_t)b * 12 + e];
-}
-
-// Gradients of means [N, 3], quats [N, 4], scales [N, 3], opacities [N] (undefined unless need_params)
-// and viewmat [4, 4] (undefined unless need_viewmat) from those of the outputs of project_forward
-// (undefined incoming gradients count as zero).
-std::vector<at::Tensor> project_backward(
-    const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales, const at::Tensor& opacities,
-    const at::Tensor& colors, const at::Tensor& viewmat, const at::Tensor& K,
-    const std::optional<at::Tensor>& max_sampling_rate, int64_t width, int64_t height,
-    const std::vector<double>& params, const at::Tensor& visible, const std::optional<at::Tensor>& grad_means2d,
-    const std::optional<at::Tensor>& grad_depth, const std::optional<at::Tensor>& grad_cov,
-    const std::optional<at::Tensor>& grad_opacity, bool need_params, bool need_viewmat, int64_t threads) {
-    const ProjectionTensors t = projection_tensors(means, quats, scales, opacities, colors, viewmat, K,
-                                                   max_sampling_rate);
-    const int64_t n = t.means.size(0);
-    const auto opts = t.means.options();
-    TORCH_CHECK(visible.scalar_type() == at::kBool && visible.numel() == n && visible.is_contiguous(),
-                "mipslam fused projection: visible must be a contiguous [N] bool tensor");
-    auto grad = [&](const std::optional<at::Tensor>& g, int64_t cols) -> at::Tensor {
-        if (!g.has_value() || !g->defined()) return at::Tensor();
-        TORCH_CHECK(g->scalar_type() == t.means.scalar_type() && g->numel() == n * cols,
-                    "mipslam fused projection: incoming gradient of the wrong dtype or size");
-        return g->contiguous();
-    };
-    const at::Tensor gm = grad(grad_means2d, 2), gd = grad(grad_depth, 1), gc = grad(grad_cov, 4),
-                     go = grad(grad_opacity, 1);
-    at::Tensor out_means, out_quats, out_scales, out_opacities, out_viewmat;
-    if (need_params) {
-        out_means = at::empty({n, 3}, opts);
-        out_quats = at::empty({n, 4}, opts);
-        out_scales = at::empty({n, 3}, opts);
-        out_opacities = at::empty({n}, opts);
-    }
-    double g_view[12] = {};
-    AT_DISPATCH_FLOATING_TYPES(t.means.scalar_type(), "project_backward", [&] {
-        const auto S = projection_settings<scalar_t>(t.viewmat, t.K, t.has_rate ? &t.rate : nullptr, width, height,
-                                                     params);
-        auto ptr = [](const at::Tensor& x) -> scalar_t* { return x.defined() ? x.data_ptr<scalar_t>() : nullptr; };
-        pybind11::gil_scoped_release no_gil;
-        project_backward_impl<scalar_t>(S, projection_inputs<scalar_t>(t), (int)threads, visible.data_ptr<bool>(),
-                                        ptr(gm), ptr(gd), ptr(gc), ptr(go), need_params, need_viewmat,
-                                        ptr(out_means), ptr(out_quats), ptr(out_scales), ptr(out_opacities), g_view);
-    });
-    if (need_viewmat) {
-        out_viewmat = at::zeros({4, 4}, opts.dtype(at::kDouble));
-        double* gv = out_viewmat.data_ptr<double>();
-        for (int j = 0; j < 3; ++j) {
-            for (int k = 0; k < 3; ++k) gv[j * 4 + k] = g_view[j * 3 + k];
-            gv[j * 4 + 3] = g_view[9 + j];
-        }
-        out_viewmat = out_viewmat.to(t.means.scalar_type());
-    }
-    return {out_means, out_quats, out_scales, out_opacities, out_viewmat};
 }
 
 }  // namespace mipslam_cpu

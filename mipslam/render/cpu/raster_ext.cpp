@@ -1,8 +1,8 @@
 // mipslam CPU rasterizer: tile binning, depth sort, SIMD footprint evaluation and front-to-back
-// compositing of projected Gaussians, forward and hand-written backward (docs/renderer.md, section
-// "CPU backend"). The projection stays in torch (mipslam/render/projection.py); this file receives the
-// projected per-Gaussian quantities the torch rasterizer composites and returns the gradient with
-// respect to them.
+// compositing of projected Gaussians, forward and hand-written backward, and the fused projection of
+// projection.h (docs/renderer_cpu.md). A plain C++ shared library with a C interface (end of this file),
+// loaded with ctypes by mipslam/render/cpu/library.py; it uses no torch or Python headers, so it compiles
+// in seconds and the package builds without torch (mipslam/render/cpu/build.py).
 //
 // Parallelism: OpenMP over 16x16 tiles (dynamic schedule). Each (Gaussian, tile) pair writes its
 // gradient to its own record; records are summed per Gaussian in a fixed (tile) order afterwards, so
@@ -10,7 +10,7 @@
 // SIMD: inside a tile a Gaussian is evaluated on the 8-pixel row segments its pixel box touches
 // (vectors of simd_math.h; the channel count C is a template parameter, never a runtime loop bound in
 // the pixel loop).
-#include <torch/extension.h>
+#include "check.h"
 
 #include <algorithm>
 #include <cmath>
@@ -156,18 +156,49 @@ static inline __attribute__((always_inline)) bool uses_columns(const Gauss& g) {
     return MODE == MODE_EAA && g.nodes >= 2 && g.nodes <= LINE_ROWS && !g.outer_y;
 }
 
-// Rows [*ra, *rb] and blocks [*b0, *b1] (inclusive) of the tile at (x0, y0) that cover the Gaussian's
-// pixel box. The tile loops take the rows in pairs (two independent pixel vectors per iteration) and an
-// odd last row alone.
-static inline __attribute__((always_inline)) bool tile_span(const Gauss& g, int x0, int y0, int* ra, int* rb,
-                                                            int* b0, int* b1) {
+// The one traversal of a Gaussian's pixel box inside the tile at (x0, y0), shared by the forward and the
+// backward so that both visit the same pixels in the same order. Returns false when the box misses the tile.
+//   Row segments (every path but EAA with outer axis x): rows [ra, rb] and 8-pixel blocks [b0, b1] of the
+//   box, taken in pairs of rows (two independent pixel vectors per iteration) and an odd last row alone:
+//     pair(v0, px, py0, py1, &ready0, &ready1)  segments v0 (row py0) and v0 + BLOCKS_PER_ROW (row py0 + 1)
+//     single(v, px, py, &ready)                 the odd last row
+//   `ready`: the EAA row state of that image row is set (eval_footprint); px holds the segment's x.
+//   Column blocks (EAA with outer axis x, uses_columns): 8x8 blocks of the box,
+//     block(R, b, rr0, rr1, cc0, cc1, py_lanes)  rows [rr0, rr1] and columns [cc0, cc1] (tile coordinates)
+//     of block row R and block column b; py_lanes = the y of the block's 8 rows.
+//   rows_done(ra, rb, b0, b1) is called after the row segments (the forward counts lanes there).
+template <int MODE, typename Pair, typename Single, typename Block, typename RowsDone>
+static inline __attribute__((always_inline)) bool traverse_box(const Gauss& g, int x0, int y0, vf lane, Pair&& pair,
+                                                               Single&& single, Block&& block,
+                                                               RowsDone&& rows_done) {
     const int r0 = std::max(g.py0 - y0, 0), r1 = std::min(g.py1 - y0, TILE - 1);
     const int c0 = std::max(g.px0 - x0, 0), c1 = std::min(g.px1 - x0, TILE - 1);
     if (r0 > r1 || c0 > c1) return false;
-    *ra = r0;
-    *rb = r1;
-    *b0 = c0 / LANES;
-    *b1 = c1 / LANES;
+    if (uses_columns<MODE>(g)) {
+        for (int R = r0 / LANES; R <= r1 / LANES; ++R) {
+            const int rr0 = std::max(r0, R * LANES), rr1 = std::min(r1, R * LANES + LANES - 1);
+            const vf py_lanes = splat((float)(y0 + R * LANES)) + lane;
+            for (int b = c0 / LANES; b <= c1 / LANES; ++b) {
+                const int cc0 = std::max(c0, b * LANES), cc1 = std::min(c1, b * LANES + LANES - 1);
+                block(R, b, rr0, rr1, cc0, cc1, py_lanes);
+            }
+        }
+        return true;
+    }
+    const int b0 = c0 / LANES, b1 = c1 / LANES;
+    int r = r0;
+    for (; r < r1; r += 2) {
+        const float py0 = (float)(y0 + r), py1 = py0 + 1.f;
+        bool ready0 = false, ready1 = false;
+        for (int b = b0; b <= b1; ++b)
+            pair(r * BLOCKS_PER_ROW + b, splat((float)(x0 + b * LANES)) + lane, py0, py1, &ready0, &ready1);
+    }
+    if (r == r1) {  // odd last row
+        bool ready0 = false;
+        for (int b = b0; b <= b1; ++b)
+            single(r * BLOCKS_PER_ROW + b, splat((float)(x0 + b * LANES)) + lane, (float)(y0 + r), &ready0);
+    }
+    rows_done(r0, r1, b0, b1);
     return true;
 }
 
@@ -217,8 +248,6 @@ static int64_t forward_tile(const Scene& sc, int tile, float* out_color, float* 
         prefetch_pair(sc, j + PREFETCH_DISTANCE < end ? sc.isect_ids[j + PREFETCH_DISTANCE] : -1, C);
         const int32_t m = sc.isect_ids[j];
         const Gauss& g = sc.gauss[m];
-        int ra, rb, b0, b1;
-        if (!tile_span(g, x0, y0, &ra, &rb, &b0, &b1)) continue;
         const vi slot = splati(j - begin + 1);
         vf col[C];
         for (int c = 0; c < C; ++c) col[c] = splat(sc.colors[(int64_t)m * C + c]);
@@ -238,50 +267,32 @@ static int64_t forward_tile(const Scene& sc, int tile, float* out_color, float* 
             T[v] = select(valid, keep(ok, tn), t);
             last[v] = selecti(valid & ok, slot, last[v]);
         };
-        if (uses_columns<MODE>(g)) {
-            const int r0 = std::max(g.py0 - y0, 0), r1 = std::min(g.py1 - y0, TILE - 1);
-            const int c0 = std::max(g.px0 - x0, 0), c1 = std::min(g.px1 - x0, TILE - 1);
-            for (int R = r0 / LANES; R <= r1 / LANES; ++R) {
-                const int rr0 = std::max(r0, R * LANES), rr1 = std::min(r1, R * LANES + LANES - 1);
-                const vf py_lanes = splat((float)(y0 + R * LANES)) + lane;
-                for (int b = c0 / LANES; b <= c1 / LANES; ++b) {
-                    const int cc0 = std::max(c0, b * LANES), cc1 = std::min(c1, b * LANES + LANES - 1);
-                    vf cols[LANES], rows[LANES];
-                    for (int i = 0; i < LANES; ++i) {
-                        const int cx = b * LANES + i;
-                        cols[i] = (cx < cc0 || cx > cc1) ? splat(0.f)
-                                                         : eaa_eval_outer_y(g, S, py_lanes, (float)(x0 + cx), &lp);
-                    }
-                    transpose8(cols, rows);
-                    for (int r = rr0; r <= rr1; ++r) composite(r * BLOCKS_PER_ROW + b, rows[r - R * LANES]);
-                    lanes += (int64_t)(cc1 - cc0 + 1) * LANES;
-                }
+        auto pair = [&](int v0, vf px, float py0, float py1, bool* ready0, bool* ready1)
+                        __attribute__((always_inline)) {
+            const vf a0 = eval_footprint<MODE>(g, S, k2, px, py0, &cp0, &ep0, &xp0, ready0);
+            const vf a1 = eval_footprint<MODE>(g, S, k2, px, py1, &cp1, &ep1, &xp1, ready1);
+            composite(v0, a0);
+            composite(v0 + BLOCKS_PER_ROW, a1);
+        };
+        auto single = [&](int v, vf px, float py, bool* ready) __attribute__((always_inline)) {
+            composite(v, eval_footprint<MODE>(g, S, k2, px, py, &cp0, &ep0, &xp0, ready));
+        };
+        auto block = [&](int R, int b, int rr0, int rr1, int cc0, int cc1, vf py_lanes)
+                         __attribute__((always_inline)) {
+            vf cols[LANES], rows[LANES];
+            for (int i = 0; i < LANES; ++i) {
+                const int cx = b * LANES + i;
+                cols[i] = (cx < cc0 || cx > cc1) ? splat(0.f)
+                                                 : eaa_eval_outer_y(g, S, py_lanes, (float)(x0 + cx), &lp);
             }
-        } else {
-            int r = ra;
-            for (; r < rb; r += 2) {
-                const float py0 = (float)(y0 + r), py1 = py0 + 1.f;
-                bool ready0 = false, ready1 = false;
-                for (int b = b0; b <= b1; ++b) {
-                    const int v0 = r * BLOCKS_PER_ROW + b;
-                    const vf px = splat((float)(x0 + b * LANES)) + lane;
-                    const vf a0 = eval_footprint<MODE>(g, S, k2, px, py0, &cp0, &ep0, &xp0, &ready0);
-                    const vf a1 = eval_footprint<MODE>(g, S, k2, px, py1, &cp1, &ep1, &xp1, &ready1);
-                    composite(v0, a0);
-                    composite(v0 + BLOCKS_PER_ROW, a1);
-                }
-            }
-            if (r == rb) {  // odd last row
-                const float py0 = (float)(y0 + r);
-                bool ready0 = false;
-                for (int b = b0; b <= b1; ++b) {
-                    const vf px = splat((float)(x0 + b * LANES)) + lane;
-                    composite(r * BLOCKS_PER_ROW + b, eval_footprint<MODE>(g, S, k2, px, py0, &cp0, &ep0, &xp0,
-                                                                           &ready0));
-                }
-            }
+            transpose8(cols, rows);
+            for (int r = rr0; r <= rr1; ++r) composite(r * BLOCKS_PER_ROW + b, rows[r - R * LANES]);
+            lanes += (int64_t)(cc1 - cc0 + 1) * LANES;
+        };
+        auto rows_done = [&](int ra, int rb, int b0, int b1) __attribute__((always_inline)) {
             lanes += (int64_t)(rb - ra + 1) * (b1 - b0 + 1) * LANES;
-        }
+        };
+        if (!traverse_box<MODE>(g, x0, y0, lane, pair, single, block, rows_done)) continue;
         if (((j - begin) & 15) == 15) {  // the whole tile saturated: nothing behind can show
             vi alive = splati(0);
             for (int v = 0; v < NV; ++v) alive |= T[v] > splat(0.f);
@@ -386,11 +397,6 @@ static void backward_tile(const Scene& sc, int tile, const GradInputs& gin, floa
         prefetch_pair(sc, j + PREFETCH_DISTANCE < stop ? sc.isect_ids[j + PREFETCH_DISTANCE] : -1, C);
         const int32_t m = sc.isect_ids[j];
         const Gauss& g = sc.gauss[m];
-        int ra, rb, b0, b1;
-        if (!tile_span(g, x0, y0, &ra, &rb, &b0, &b1)) {
-            for (int q = 0; q < REC; ++q) records[(int64_t)j * REC + q] = 0.f;
-            continue;
-        }
         const vi slot = splati(j - begin);
         vf col[C];
         for (int c = 0; c < C; ++c) col[c] = splat(sc.colors[(int64_t)m * C + c]);
@@ -427,53 +433,38 @@ static void backward_tile(const Scene& sc, int tile, const GradInputs& gin, floa
             if (!any_lane(ga != splat(0.f))) return;
             grad_footprint<MODE, GO>(g, S, py, *cp, *ep, *xp, ga, &acc);
         };
-        if (uses_columns<MODE>(g)) {
-            const int r0 = std::max(g.py0 - y0, 0), r1 = std::min(g.py1 - y0, TILE - 1);
-            const int c0 = std::max(g.px0 - x0, 0), c1 = std::min(g.px1 - x0, TILE - 1);
-            for (int R = r0 / LANES; R <= r1 / LANES; ++R) {
-                const int rr0 = std::max(r0, R * LANES), rr1 = std::min(r1, R * LANES + LANES - 1);
-                const vf py_lanes = splat((float)(y0 + R * LANES)) + lane;
-                for (int b = c0 / LANES; b <= c1 / LANES; ++b) {
-                    vi listed_any = splati(0);
-                    for (int r = rr0; r <= rr1; ++r) listed_any |= slot < last[r * BLOCKS_PER_ROW + b];
-                    if (!any_lane(listed_any)) continue;
-                    const int cc0 = std::max(c0, b * LANES), cc1 = std::min(c1, b * LANES + LANES - 1);
-                    vf cols[LANES], rows[LANES], ga_rows[LANES], ga_cols[LANES];
-                    for (int i = 0; i < LANES; ++i) {
-                        const int cx = b * LANES + i;
-                        cols[i] = (cx < cc0 || cx > cc1)
-                                      ? splat(0.f)
-                                      : eaa_eval_outer_y(g, S, py_lanes, (float)(x0 + cx), &lines[i]);
-                    }
-                    transpose8(cols, rows);
-                    for (int r = 0; r < LANES; ++r) ga_rows[r] = splat(0.f);
-                    for (int r = rr0; r <= rr1; ++r) {
-                        const int v = r * BLOCKS_PER_ROW + b;
-                        ga_rows[r - R * LANES] = composite_grad(v, slot < last[v], rows[r - R * LANES]);
-                    }
-                    transpose8(ga_rows, ga_cols);
-                    for (int i = cc0 - b * LANES; i <= cc1 - b * LANES; ++i)
-                        eaa_grad_outer_y<GO>(g, S, lines[i], ga_cols[i], &acc);
-                }
+        auto pair = [&](int v0, vf px, float py0, float py1, bool* ready0, bool* ready1)
+                        __attribute__((always_inline)) {
+            process(v0, px, py0, &cp0, &ep0, &xp0, ready0);
+            process(v0 + BLOCKS_PER_ROW, px, py1, &cp1, &ep1, &xp1, ready1);
+        };
+        auto single = [&](int v, vf px, float py, bool* ready) __attribute__((always_inline)) {
+            process(v, px, py, &cp0, &ep0, &xp0, ready);
+        };
+        auto block = [&](int R, int b, int rr0, int rr1, int cc0, int cc1, vf py_lanes)
+                         __attribute__((always_inline)) {
+            vi listed_any = splati(0);
+            for (int r = rr0; r <= rr1; ++r) listed_any |= slot < last[r * BLOCKS_PER_ROW + b];
+            if (!any_lane(listed_any)) return;
+            vf cols[LANES], rows[LANES], ga_rows[LANES], ga_cols[LANES];
+            for (int i = 0; i < LANES; ++i) {
+                const int cx = b * LANES + i;
+                cols[i] = (cx < cc0 || cx > cc1) ? splat(0.f)
+                                                 : eaa_eval_outer_y(g, S, py_lanes, (float)(x0 + cx), &lines[i]);
             }
-        } else {
-            int r = ra;
-            for (; r < rb; r += 2) {
-                const float py0 = (float)(y0 + r), py1 = py0 + 1.f;
-                bool ready0 = false, ready1 = false;
-                for (int b = b0; b <= b1; ++b) {
-                    const int v0 = r * BLOCKS_PER_ROW + b;
-                    const vf px = splat((float)(x0 + b * LANES)) + lane;
-                    process(v0, px, py0, &cp0, &ep0, &xp0, &ready0);
-                    process(v0 + BLOCKS_PER_ROW, px, py1, &cp1, &ep1, &xp1, &ready1);
-                }
+            transpose8(cols, rows);
+            for (int r = 0; r < LANES; ++r) ga_rows[r] = splat(0.f);
+            for (int r = rr0; r <= rr1; ++r) {
+                const int v = r * BLOCKS_PER_ROW + b;
+                ga_rows[r - R * LANES] = composite_grad(v, slot < last[v], rows[r - R * LANES]);
             }
-            if (r == rb) {  // odd last row
-                bool ready0 = false;
-                for (int b = b0; b <= b1; ++b)
-                    process(r * BLOCKS_PER_ROW + b, splat((float)(x0 + b * LANES)) + lane, (float)(y0 + r), &cp0,
-                            &ep0, &xp0, &ready0);
-            }
+            transpose8(ga_rows, ga_cols);
+            for (int i = cc0 - b * LANES; i <= cc1 - b * LANES; ++i)
+                eaa_grad_outer_y<GO>(g, S, lines[i], ga_cols[i], &acc);
+        };
+        if (!traverse_box<MODE>(g, x0, y0, lane, pair, single, block, [](int, int, int, int) {})) {
+            for (int q = 0; q < REC; ++q) records[(int64_t)j * REC + q] = 0.f;
+            continue;
         }
         float sums[6] = {hsum(acc.g0), hsum(acc.g1), hsum(acc.g2), hsum(acc.g3), hsum(acc.g4), hsum(acc.go)};
         float* rec = records + (int64_t)j * REC;
@@ -489,20 +480,11 @@ static void backward_tile(const Scene& sc, int tile, const GradInputs& gin, floa
 }
 
 // ---------------------------------------------------------------------------------------------
-// Host functions
+// Host side: binning, depth sort, the OpenMP tile loops and the deterministic gradient reduction
 // ---------------------------------------------------------------------------------------------
-static void check_tensor(const at::Tensor& t, const char* name, at::ScalarType dtype, int64_t dim0, int64_t dim1) {
-    TORCH_CHECK(t.device().is_cpu(), "mipslam cpu rasterizer: ", name, " must be a CPU tensor");
-    TORCH_CHECK(t.scalar_type() == dtype, "mipslam cpu rasterizer: ", name, " has the wrong dtype");
-    TORCH_CHECK(t.is_contiguous(), "mipslam cpu rasterizer: ", name, " must be contiguous");
-    TORCH_CHECK(t.dim() >= 1 && t.size(0) == dim0, "mipslam cpu rasterizer: ", name, " has the wrong length");
-    if (dim1 >= 0)
-        TORCH_CHECK(t.dim() >= 2 && t.size(1) == dim1, "mipslam cpu rasterizer: ", name, " has the wrong shape");
-}
-
 struct Inputs {
-    const float *means2d, *cov, *opacity, *depth, *colors;
-    const int32_t* node_counts;
+    const float *means2d, *cov, *opacity, *depth, *colors;  // [N, 2] [N, 4] [N] [N] [N, C]
+    const int32_t* node_counts;                             // [N]
     int64_t n, channels;
 };
 
@@ -569,27 +551,32 @@ static void radix_sort_pairs(std::vector<uint32_t>* keys, std::vector<int32_t>* 
     }
 }
 
+// The forward between its two calls: the caller learns the sizes (drawn Gaussians, pairs) from
+// mipslam_rasterize_bin, allocates the arrays, and mipslam_rasterize_forward fills them and renders.
 struct Binning {
-    at::Tensor order;         // [M] int32 input index of each drawn Gaussian, front to back
-    at::Tensor tile_offsets;  // [tiles + 1] int32
-    at::Tensor isect_ids;     // [P] int32 sorted index of each pair (tile-major)
-    at::Tensor pair_offsets;  // [M + 1] int32 pairs of sorted Gaussian m: isect_pos[pair_offsets[m] ..]
-    at::Tensor isect_pos;     // [P] int32 position of each of those pairs in the tile-major list
+    Inputs in;
+    int mode, width, height, tiles_x, tiles_y, threads;
+    float k_sigma;
+    Sorted sorted;
+    std::vector<int32_t> order;         // [M] input index of each drawn Gaussian, front to back
+    std::vector<int32_t> tile_offsets;  // [tiles + 1]
+    std::vector<int32_t> pair_offsets;  // [M + 1] pairs of sorted Gaussian m: isect_pos[pair_offsets[m] ..]
+    int64_t pairs = 0;
 };
 
-static Binning bin_gaussians(const Inputs& in, int mode, float k, int width, int height, int threads,
-                             Sorted* sorted) {
+// Depth sort and pair counts (the first half of the binning).
+static void bin_gaussians(Binning* b) {
+    const Inputs& in = b->in;
     const int64_t n = in.n;
-    const int tiles_x = (width + TILE - 1) / TILE, tiles_y = (height + TILE - 1) / TILE;
-    const int64_t num_tiles = (int64_t)tiles_x * tiles_y;
+    const int64_t num_tiles = (int64_t)b->tiles_x * b->tiles_y;
     std::unique_ptr<Gauss[]> all(new Gauss[(size_t)std::max<int64_t>(n, 1)]);  // written by setup_all
     std::vector<uint8_t> drawn(n, 0);
-    setup_all(in, mode, k, width, height, threads, all.get(), drawn.data());
+    setup_all(in, b->mode, b->k_sigma, b->width, b->height, b->threads, all.get(), drawn.data());
     // Depth order, ties in input order (the torch backend's stable argsort): the depth as an
     // order-preserving unsigned integer, radix-sorted stably with the indices in increasing order.
     // Depths are finite here.
     std::vector<uint32_t> keys;
-    std::vector<int32_t> index;
+    std::vector<int32_t>& index = b->order;
     keys.reserve(n);
     index.reserve(n);
     for (int64_t i = 0; i < n; ++i) {
@@ -602,89 +589,69 @@ static Binning bin_gaussians(const Inputs& in, int mode, float k, int width, int
         index.push_back((int32_t)i);
     }
     radix_sort_pairs(&keys, &index);
-    const int64_t count = (int64_t)keys.size();
-    Binning out;
-    out.order = at::empty({count}, at::kInt);
-    int32_t* order = out.order.data_ptr<int32_t>();
-    std::copy(index.begin(), index.end(), order);
-    gather_sorted(in, all.get(), order, count, threads, sorted);
-    const Gauss* gs = sorted->gauss.get();
-
-    out.pair_offsets = at::empty({count + 1}, at::kInt);
-    int32_t* poff = out.pair_offsets.data_ptr<int32_t>();
-    out.tile_offsets = at::zeros({num_tiles + 1}, at::kInt);
-    int32_t* toff = out.tile_offsets.data_ptr<int32_t>();
+    const int64_t count = (int64_t)index.size();
+    gather_sorted(in, all.get(), index.data(), count, b->threads, &b->sorted);
+    const Gauss* gs = b->sorted.gauss.get();
+    b->pair_offsets.assign(count + 1, 0);
+    b->tile_offsets.assign(num_tiles + 1, 0);
+    int32_t* poff = b->pair_offsets.data();
+    int32_t* toff = b->tile_offsets.data();
     int64_t total = 0;
     for (int64_t m = 0; m < count; ++m) {
         const Gauss& g = gs[m];
         poff[m] = (int32_t)total;
         for (int ty = g.py0 / TILE; ty <= g.py1 / TILE; ++ty)
-            for (int tx = g.px0 / TILE; tx <= g.px1 / TILE; ++tx) toff[(int64_t)ty * tiles_x + tx + 1] += 1;
+            for (int tx = g.px0 / TILE; tx <= g.px1 / TILE; ++tx) toff[(int64_t)ty * b->tiles_x + tx + 1] += 1;
         total += (int64_t)(g.px1 / TILE - g.px0 / TILE + 1) * (g.py1 / TILE - g.py0 / TILE + 1);
-        TORCH_CHECK(total < (int64_t)std::numeric_limits<int32_t>::max(),
-                    "mipslam cpu rasterizer: more than 2^31 (tile, Gaussian) pairs; render at a lower resolution");
+        MIPSLAM_CHECK(total < (int64_t)std::numeric_limits<int32_t>::max(),
+                      "mipslam cpu rasterizer: more than 2^31 (tile, Gaussian) pairs; render at a lower resolution");
     }
     poff[count] = (int32_t)total;
     for (int64_t t = 0; t < num_tiles; ++t) toff[t + 1] += toff[t];
-    out.isect_ids = at::empty({total}, at::kInt);
-    out.isect_pos = at::empty({total}, at::kInt);
-    int32_t* ids = out.isect_ids.data_ptr<int32_t>();
-    int32_t* pos = out.isect_pos.data_ptr<int32_t>();
-    std::vector<int32_t> cursor(toff, toff + num_tiles);
+    b->pairs = total;
+}
+
+// The tile-major pair list (the second half of the binning): ids [P] sorted index of each pair,
+// pos [P] position of each Gaussian's pairs in that list.
+static void list_pairs(const Binning& b, int32_t* ids, int32_t* pos) {
+    const int64_t count = (int64_t)b.order.size();
+    const Gauss* gs = b.sorted.gauss.get();
+    std::vector<int32_t> cursor(b.tile_offsets.begin(), b.tile_offsets.end() - 1);
     for (int64_t m = 0; m < count; ++m) {
         const Gauss& g = gs[m];
-        int32_t q = poff[m];
+        int32_t q = b.pair_offsets[m];
         for (int ty = g.py0 / TILE; ty <= g.py1 / TILE; ++ty)
             for (int tx = g.px0 / TILE; tx <= g.px1 / TILE; ++tx) {
-                const int32_t p = cursor[(int64_t)ty * tiles_x + tx]++;
+                const int32_t p = cursor[(int64_t)ty * b.tiles_x + tx]++;
                 ids[p] = (int32_t)m;
                 pos[q++] = p;
             }
     }
-    return out;
 }
 
-static Settings make_settings(int mode, double k, double eta, double tau, const at::Tensor& gl_nodes,
-                              const at::Tensor& gl_weights) {
+static Settings make_settings(int mode, double k, double eta, double tau, const float* gl_nodes,
+                              const float* gl_weights, int64_t exact_order) {
     Settings s;
     s.mode = mode;
     s.k_sigma = (float)k;
     s.eta = (float)eta;
     s.tau = (float)tau;
-    s.exact_order = (int)gl_nodes.size(0);
-    s.gl_nodes = gl_nodes.data_ptr<float>();
-    s.gl_weights = gl_weights.data_ptr<float>();
+    s.exact_order = (int)exact_order;
+    s.gl_nodes = gl_nodes;
+    s.gl_weights = gl_weights;
     return s;
 }
 
-static Inputs check_inputs(const at::Tensor& means2d, const at::Tensor& cov, const at::Tensor& opacity,
-                           const at::Tensor& depth, const at::Tensor& colors, const at::Tensor& node_counts,
-                           int64_t mode, int64_t width, int64_t height, const at::Tensor& gl_nodes,
-                           const at::Tensor& gl_weights) {
-    const int64_t n = means2d.size(0);
-    check_tensor(means2d, "means2d", at::kFloat, n, 2);
-    check_tensor(cov, "cov", at::kFloat, n, 4);
-    check_tensor(opacity, "opacity", at::kFloat, n, -1);
-    check_tensor(depth, "depth", at::kFloat, n, -1);
-    TORCH_CHECK(colors.dim() == 2, "mipslam cpu rasterizer: colors must be [N, C]");
-    check_tensor(colors, "colors", at::kFloat, n, colors.size(1));
-    check_tensor(node_counts, "node_counts", at::kInt, n, -1);
-    check_tensor(gl_nodes, "gl_nodes", at::kFloat, gl_nodes.size(0), -1);
-    check_tensor(gl_weights, "gl_weights", at::kFloat, gl_nodes.size(0), -1);
-    TORCH_CHECK(mode >= 0 && mode <= 2, "mipslam cpu rasterizer: unknown mode ", mode);
-    TORCH_CHECK(width >= 1 && height >= 1 && width <= (1 << 24) && height <= (1 << 24),
-                "mipslam cpu rasterizer: image size must be in [1, 2^24]");
-    TORCH_CHECK(gl_nodes.size(0) >= 1 && gl_nodes.size(0) <= MAX_ROWS,
-                "mipslam cpu rasterizer: exact order must be in [1, ", MAX_ROWS, "]");
-    if (n > 0 && mode == MODE_EAA) {
-        const int32_t* nc = node_counts.data_ptr<int32_t>();
-        for (int64_t i = 0; i < n; ++i)
-            TORCH_CHECK(nc[i] >= 1 && nc[i] <= MAX_ROWS, "mipslam cpu rasterizer: EAA node counts must be in [1, ",
-                        MAX_ROWS, "]");
-    }
-    return Inputs{means2d.data_ptr<float>(), cov.data_ptr<float>(), opacity.data_ptr<float>(),
-                  depth.data_ptr<float>(), colors.data_ptr<float>(), node_counts.data_ptr<int32_t>(), n,
-                  colors.size(1)};
+static void check_settings(const Inputs& in, int64_t mode, int64_t width, int64_t height) {
+    MIPSLAM_CHECK(mode >= 0 && mode <= 2, "mipslam cpu rasterizer: unknown mode ", mode);
+    MIPSLAM_CHECK(width >= 1 && height >= 1 && width <= (1 << 24) && height <= (1 << 24),
+                  "mipslam cpu rasterizer: image size must be in [1, 2^24]");
+    MIPSLAM_CHECK(in.channels == 1 || in.channels == 3 || in.channels == 4,
+                  "mipslam cpu rasterizer: colour channels must be 1, 3 or 4, got ", in.channels);
+    if (mode == MODE_EAA)
+        for (int64_t i = 0; i < in.n; ++i)
+            MIPSLAM_CHECK(in.node_counts[i] >= 1 && in.node_counts[i] <= MAX_ROWS,
+                          "mipslam cpu rasterizer: EAA node counts must be in [1, ", MAX_ROWS, "]");
 }
 
 template <int C>
@@ -732,193 +699,325 @@ static void run_backward(const Scene& sc, int threads, const GradInputs& gin, fl
         run_backward_flags<C, false, false>(sc, threads, gin, records);
 }
 
-#define MIPSLAM_DISPATCH_CHANNELS(C_VALUE, CALL)                                                         \
-    switch (C_VALUE) {                                                                                   \
-        case 1: { constexpr int CH = 1; CALL; break; }                                                   \
-        case 3: { constexpr int CH = 3; CALL; break; }                                                   \
-        case 4: { constexpr int CH = 4; CALL; break; }                                                   \
-        default: TORCH_CHECK(false, "mipslam cpu rasterizer: colour channels must be 1, 3 or 4, got ", C_VALUE); \
+// C (1, 3 or 4 colour channels, checked by check_settings) as a compile-time constant CH in CALL.
+#define MIPSLAM_DISPATCH_CHANNELS(C_VALUE, CALL)          \
+    switch (C_VALUE) {                                    \
+        case 1: { constexpr int CH = 1; CALL; break; }    \
+        case 3: { constexpr int CH = 3; CALL; break; }    \
+        case 4: { constexpr int CH = 4; CALL; break; }    \
+        default: break;                                   \
     }
 
-// Returns color [H, W, C], depth [H, W], alpha [H, W], then the state the backward needs (order,
-// tile_offsets, isect_ids, pair_offsets, isect_pos, last [H, W]) and stats [2] int64 (footprint lanes
-// evaluated, pairs).
-std::vector<at::Tensor> rasterize_forward(const at::Tensor& means2d, const at::Tensor& cov,
-                                          const at::Tensor& opacity, const at::Tensor& depth,
-                                          const at::Tensor& colors, const at::Tensor& node_counts, int64_t mode,
-                                          int64_t width, int64_t height, double k_sigma, double eta, double tau,
-                                          const at::Tensor& gl_nodes, const at::Tensor& gl_weights,
-                                          int64_t threads) {
-    const Inputs in = check_inputs(means2d, cov, opacity, depth, colors, node_counts, mode, width, height, gl_nodes,
-                                   gl_weights);
-    const int64_t C = in.channels;
+static void rasterize_forward(Binning* b, const Settings& settings, int32_t* order, int32_t* tile_offsets,
+                              int32_t* isect_ids, int32_t* pair_offsets, int32_t* isect_pos, float* color,
+                              float* depth, float* alpha, int32_t* last, int64_t* stats) {
+    std::copy(b->order.begin(), b->order.end(), order);
+    std::copy(b->tile_offsets.begin(), b->tile_offsets.end(), tile_offsets);
+    std::copy(b->pair_offsets.begin(), b->pair_offsets.end(), pair_offsets);
+    list_pairs(*b, isect_ids, isect_pos);
+    const int C = (int)b->in.channels;
+    Scene sc{b->width, b->height, b->tiles_x, b->tiles_y, C, settings, b->sorted.gauss.get(),
+             b->sorted.colors.get(), tile_offsets, isect_ids};
+    int64_t lanes = 0;
     // every pixel is written by forward_tile
-    at::Tensor color = at::empty({height, width, C}, at::kFloat);
-    at::Tensor depth_img = at::empty({height, width}, at::kFloat);
-    at::Tensor alpha_img = at::empty({height, width}, at::kFloat);
-    at::Tensor last = at::empty({height, width}, at::kInt);
-    at::Tensor stats = at::zeros({2}, at::kLong);
-    Binning bins;
-    {
-        pybind11::gil_scoped_release no_gil;
-        Sorted sorted;
-        bins = bin_gaussians(in, (int)mode, (float)k_sigma, (int)width, (int)height, (int)threads, &sorted);
-        Scene sc{(int)width, (int)height, (int)((width + TILE - 1) / TILE), (int)((height + TILE - 1) / TILE),
-                 (int)C, make_settings((int)mode, k_sigma, eta, tau, gl_nodes, gl_weights), sorted.gauss.get(),
-                 sorted.colors.get(), bins.tile_offsets.data_ptr<int32_t>(), bins.isect_ids.data_ptr<int32_t>()};
-        int64_t lanes = 0;
-        MIPSLAM_DISPATCH_CHANNELS(C, lanes = run_forward<CH>(sc, (int)threads, color.data_ptr<float>(),
-                                                           depth_img.data_ptr<float>(), alpha_img.data_ptr<float>(),
-                                                           last.data_ptr<int32_t>()));
-        stats.data_ptr<int64_t>()[0] = lanes;
-        stats.data_ptr<int64_t>()[1] = bins.isect_ids.size(0);
-    }
-    return {color, depth_img, alpha_img, bins.order, bins.tile_offsets, bins.isect_ids, bins.pair_offsets,
-            bins.isect_pos, last, stats};
+    MIPSLAM_DISPATCH_CHANNELS(C, lanes = run_forward<CH>(sc, b->threads, color, depth, alpha, last));
+    stats[0] = lanes;
+    stats[1] = b->pairs;
 }
 
-// Gradient of sum(grad_color * color + grad_depth * depth + grad_alpha * alpha) with respect to
-// means2d [N, 2], cov [N, 4], opacity [N], depth [N], colors [N, C] (in this order).
-std::vector<at::Tensor> rasterize_backward(
-    const at::Tensor& means2d, const at::Tensor& cov, const at::Tensor& opacity, const at::Tensor& depth,
-    const at::Tensor& colors, const at::Tensor& node_counts, int64_t mode, int64_t width, int64_t height,
-    double k_sigma, double eta, double tau, const at::Tensor& gl_nodes, const at::Tensor& gl_weights,
-    const at::Tensor& order, const at::Tensor& tile_offsets, const at::Tensor& isect_ids,
-    const at::Tensor& pair_offsets, const at::Tensor& isect_pos, const at::Tensor& last, const at::Tensor& color,
-    const at::Tensor& depth_img, const at::Tensor& alpha_img, const at::Tensor& grad_color,
-    const at::Tensor& grad_depth, const at::Tensor& grad_alpha, bool need_color_grad, bool need_opacity_grad,
-    int64_t threads) {
-    const Inputs in = check_inputs(means2d, cov, opacity, depth, colors, node_counts, mode, width, height, gl_nodes,
-                                   gl_weights);
+// The state the forward returned (ord [M], tile_offsets, isect_ids [P], pair_offsets [M + 1], isect_pos [P],
+// last [H, W]) and the incoming gradients -> d/d means2d [N, 2], cov [N, 4], opacity [N], depth [N],
+// colors [N, C] (zero-filled by the caller; rows of Gaussians that were not drawn stay zero).
+static void rasterize_backward(const Inputs& in, int mode, int width, int height, const Settings& settings,
+                               const int32_t* ord, int64_t count, const int32_t* tile_offsets,
+                               const int32_t* isect_ids, int64_t total, const int32_t* poff, const int32_t* ip,
+                               const GradInputs& gin, bool need_color_grad, bool need_opacity_grad, int threads,
+                               float* gm, float* gc, float* go, float* gd, float* gcol) {
     const int64_t n = in.n, C = in.channels;
-    const int tiles_x = (int)((width + TILE - 1) / TILE), tiles_y = (int)((height + TILE - 1) / TILE);
-    const int64_t num_tiles = (int64_t)tiles_x * tiles_y;
-    const int64_t count = order.size(0), total = isect_ids.size(0);
-    check_tensor(order, "order", at::kInt, count, -1);
-    check_tensor(tile_offsets, "tile_offsets", at::kInt, num_tiles + 1, -1);
-    check_tensor(pair_offsets, "pair_offsets", at::kInt, count + 1, -1);
-    check_tensor(isect_ids, "isect_ids", at::kInt, total, -1);
-    check_tensor(isect_pos, "isect_pos", at::kInt, total, -1);
-    check_tensor(last, "last", at::kInt, height, width);
-    check_tensor(color, "color", at::kFloat, height, width);
-    check_tensor(grad_color, "grad_color", at::kFloat, height, width);
-    check_tensor(depth_img, "depth", at::kFloat, height, width);
-    check_tensor(alpha_img, "alpha", at::kFloat, height, width);
-    check_tensor(grad_depth, "grad_depth", at::kFloat, height, width);
-    check_tensor(grad_alpha, "grad_alpha", at::kFloat, height, width);
-    TORCH_CHECK(color.dim() == 3 && color.size(2) == C && grad_color.dim() == 3 && grad_color.size(2) == C,
-                "mipslam cpu rasterizer: colour images must be [H, W, C]");
-    at::Tensor g_means2d = at::zeros({n, 2}, at::kFloat);
-    at::Tensor g_cov = at::zeros({n, 4}, at::kFloat);
-    at::Tensor g_opacity = at::zeros({n}, at::kFloat);
-    at::Tensor g_depth = at::zeros({n}, at::kFloat);
-    at::Tensor g_colors = at::zeros({n, C}, at::kFloat);
+    const int tiles_x = (width + TILE - 1) / TILE, tiles_y = (height + TILE - 1) / TILE;
+    for (int64_t m = 0; m < count; ++m)
+        MIPSLAM_CHECK(ord[m] >= 0 && ord[m] < n, "mipslam cpu rasterizer: corrupt backward state (order)");
+    Sorted sorted;  // identical to the forward's (same inputs, same arithmetic)
+    sorted.allocate(count, C);
     {
-        pybind11::gil_scoped_release no_gil;
-        const int32_t* ord = order.data_ptr<int32_t>();
-        for (int64_t m = 0; m < count; ++m)
-            TORCH_CHECK(ord[m] >= 0 && ord[m] < n, "mipslam cpu rasterizer: corrupt backward state (order)");
-        Sorted sorted;  // identical to the forward's (same inputs, same arithmetic)
-        sorted.allocate(count, C);
-        {
-            Gauss* gs = sorted.gauss.get();
-            float* cs = sorted.colors.get();
-#pragma omp parallel for schedule(static) num_threads((int)threads)
-            for (int64_t m = 0; m < count; ++m) {
-                const int64_t i = ord[m];
-                bool drawn = false;
-                gs[m] = setup_gaussian((int)mode, (float)k_sigma, in.means2d + 2 * i, in.cov + 4 * i, in.opacity[i],
-                                       in.depth[i], in.node_counts[i], (int)width, (int)height, &drawn);
-                for (int64_t c = 0; c < C; ++c) cs[m * C + c] = in.colors[i * C + c];
-            }
-        }
-        Scene sc{(int)width, (int)height, tiles_x, tiles_y, (int)C,
-                 make_settings((int)mode, k_sigma, eta, tau, gl_nodes, gl_weights), sorted.gauss.get(),
-                 sorted.colors.get(), tile_offsets.data_ptr<int32_t>(), isect_ids.data_ptr<int32_t>()};
-        GradInputs gin{grad_color.data_ptr<float>(), grad_depth.data_ptr<float>(), grad_alpha.data_ptr<float>(),
-                       color.data_ptr<float>(), depth_img.data_ptr<float>(), alpha_img.data_ptr<float>(),
-                       last.data_ptr<int32_t>()};
-        const int64_t rec = 8 + C;
-        // every record is written by backward_tile (zeros for pairs it skips)
-        std::unique_ptr<float[]> records(new float[(size_t)std::max<int64_t>(total * rec, 1)]);
-        MIPSLAM_DISPATCH_CHANNELS(C, run_backward<CH>(sc, (int)threads, gin, records.get(), need_color_grad,
-                                                      need_opacity_grad));
-        // Deterministic reduction: each Gaussian sums its pairs in tile order (no atomics, and the
-        // result does not depend on the number of threads or on the schedule).
-        const int32_t* poff = pair_offsets.data_ptr<int32_t>();
-        const int32_t* ip = isect_pos.data_ptr<int32_t>();
-        float* gm = g_means2d.data_ptr<float>();
-        float* gc = g_cov.data_ptr<float>();
-        float* go = g_opacity.data_ptr<float>();
-        float* gd = g_depth.data_ptr<float>();
-        float* gcol = g_colors.data_ptr<float>();
-        const float* rp = records.get();
-#pragma omp parallel for schedule(static) num_threads((int)threads)
+        Gauss* gs = sorted.gauss.get();
+        float* cs = sorted.colors.get();
+#pragma omp parallel for schedule(static) num_threads(threads)
         for (int64_t m = 0; m < count; ++m) {
-            float acc[8 + 4] = {};
-            for (int32_t q = poff[m]; q < poff[m + 1]; ++q) {
-                const float* r = rp + (int64_t)ip[q] * rec;
-                for (int64_t e = 0; e < rec; ++e) acc[e] += r[e];
-            }
             const int64_t i = ord[m];
-            gm[2 * i] = acc[0];
-            gm[2 * i + 1] = acc[1];
-            gc[4 * i] = acc[2];
-            gc[4 * i + 1] = acc[3];
-            gc[4 * i + 2] = acc[4];
-            gc[4 * i + 3] = acc[5];
-            go[i] = acc[6];
-            gd[i] = acc[7];
-            for (int64_t c = 0; c < C; ++c) gcol[i * C + c] = acc[8 + c];
+            bool drawn = false;
+            gs[m] = setup_gaussian(mode, settings.k_sigma, in.means2d + 2 * i, in.cov + 4 * i, in.opacity[i],
+                                   in.depth[i], in.node_counts[i], width, height, &drawn);
+            for (int64_t c = 0; c < C; ++c) cs[m * C + c] = in.colors[i * C + c];
         }
     }
-    return {g_means2d, g_cov, g_opacity, g_depth, g_colors};
-}
-
-// Test hooks: the vector exp / erf on a float tensor (any length). which: 0 = exp, 1 = erf.
-at::Tensor vector_math(const at::Tensor& x, int64_t which) {
-    TORCH_CHECK(x.scalar_type() == at::kFloat && x.dim() == 1 && x.is_contiguous(),
-                "vector_math: x must be a contiguous 1-D float32 tensor");
-    at::Tensor y = at::empty_like(x);
-    const float* xp = x.data_ptr<float>();
-    float* yp = y.data_ptr<float>();
-    const int64_t n = x.size(0);
-    for (int64_t i = 0; i < n; i += LANES) {
-        vf v = splat(0.f);
-        for (int l = 0; l < LANES && i + l < n; ++l) v[l] = xp[i + l];
-        const vf r = which == 0 ? vexp(v) : verf(v);
-        for (int l = 0; l < LANES && i + l < n; ++l) yp[i + l] = r[l];
+    Scene sc{width, height, tiles_x, tiles_y, (int)C, settings, sorted.gauss.get(), sorted.colors.get(),
+             tile_offsets, isect_ids};
+    const int64_t rec = 8 + C;
+    // every record is written by backward_tile (zeros for pairs it skips)
+    std::unique_ptr<float[]> records(new float[(size_t)std::max<int64_t>(total * rec, 1)]);
+    MIPSLAM_DISPATCH_CHANNELS(C, run_backward<CH>(sc, threads, gin, records.get(), need_color_grad,
+                                                  need_opacity_grad));
+    // Deterministic reduction: each Gaussian sums its pairs in tile order (no atomics, and the
+    // result does not depend on the number of threads or on the schedule).
+    const float* rp = records.get();
+#pragma omp parallel for schedule(static) num_threads(threads)
+    for (int64_t m = 0; m < count; ++m) {
+        float acc[8 + 4] = {};
+        for (int32_t q = poff[m]; q < poff[m + 1]; ++q) {
+            const float* r = rp + (int64_t)ip[q] * rec;
+            for (int64_t e = 0; e < rec; ++e) acc[e] += r[e];
+        }
+        const int64_t i = ord[m];
+        gm[2 * i] = acc[0];
+        gm[2 * i + 1] = acc[1];
+        gc[4 * i] = acc[2];
+        gc[4 * i + 1] = acc[3];
+        gc[4 * i + 2] = acc[4];
+        gc[4 * i + 3] = acc[5];
+        go[i] = acc[6];
+        gd[i] = acc[7];
+        for (int64_t c = 0; c < C; ++c) gcol[i * C + c] = acc[8 + c];
     }
-    return y;
-}
-
-std::string build_info() {
-    std::string s;
-#ifdef __AVX2__
-    s += "avx2 ";
-#endif
-#ifdef __FMA__
-    s += "fma ";
-#endif
-#ifdef __SSE2__
-    s += "sse2 ";
-#endif
-#ifdef _OPENMP
-    s += "openmp";
-#else
-    s += "no-openmp";
-#endif
-    return s;
 }
 
 }  // namespace mipslam_cpu
 
-PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-    m.doc() = "mipslam CPU rasterizer (tile binning, SIMD footprints, compositing; forward and backward)";
-    m.def("rasterize_forward", &mipslam_cpu::rasterize_forward);
-    m.def("rasterize_backward", &mipslam_cpu::rasterize_backward);
-    m.def("project_forward", &mipslam_cpu::project_forward);
-    m.def("project_backward", &mipslam_cpu::project_backward);
-    m.def("vector_math", &mipslam_cpu::vector_math);
-    m.def("build_info", &mipslam_cpu::build_info);
+// ---------------------------------------------------------------------------------------------
+// C interface (loaded with ctypes by mipslam/render/cpu/library.py)
+// ---------------------------------------------------------------------------------------------
+// Every array is a contiguous CPU array the caller allocated (the Python side checks shapes and dtypes).
+// Functions that can fail return 0 on success, MIPSLAM_ERR_VALUE for an invalid value from the caller,
+// MIPSLAM_ERR_RUNTIME for another failure and MIPSLAM_ERR_MEMORY when an allocation failed, with the message
+// in err[err_len].
+#define MIPSLAM_API extern "C" __attribute__((visibility("default")))
+
+namespace {
+
+enum ErrorCode : int { MIPSLAM_OK = 0, MIPSLAM_ERR_VALUE = 1, MIPSLAM_ERR_RUNTIME = 2, MIPSLAM_ERR_MEMORY = 3 };
+
+void write_message(char* err, int64_t err_len, const char* message) {
+    if (err == nullptr || err_len <= 0) return;
+    std::strncpy(err, message, (size_t)err_len - 1);
+    err[err_len - 1] = '\0';
+}
+
+template <typename F>
+int guarded(char* err, int64_t err_len, F&& body) {
+    try {
+        body();
+        return MIPSLAM_OK;
+    } catch (const std::invalid_argument& e) {
+        write_message(err, err_len, e.what());
+        return MIPSLAM_ERR_VALUE;
+    } catch (const std::bad_alloc&) {
+        write_message(err, err_len, "mipslam cpu rasterizer: out of memory");
+        return MIPSLAM_ERR_MEMORY;
+    } catch (const std::exception& e) {
+        write_message(err, err_len, e.what());
+        return MIPSLAM_ERR_RUNTIME;
+    }
+}
+
+}  // namespace
+
+#ifndef MIPSLAM_SOURCE_HASH
+#define MIPSLAM_SOURCE_HASH "unknown"
+#endif
+
+// Bumped whenever a signature below changes (library.py refuses a library of another version).
+MIPSLAM_API int mipslam_abi_version(void) { return 1; }
+
+// Hash of the sources and flags the library was built from (mipslam/render/cpu/build.py, source_hash), also
+// readable from the file without loading it (the marker).
+static const char source_tag[] __attribute__((used)) = "mipslam-source-hash:" MIPSLAM_SOURCE_HASH;
+MIPSLAM_API const char* mipslam_source_hash(void) { return source_tag + sizeof("mipslam-source-hash:") - 1; }
+
+MIPSLAM_API const char* mipslam_build_info(void) {
+    static const char info[] =
+#ifdef __AVX2__
+        "avx2 "
+#endif
+#ifdef __FMA__
+        "fma "
+#endif
+#ifdef __SSE2__
+        "sse2 "
+#endif
+#ifdef _OPENMP
+        "openmp";
+#else
+        "no-openmp";
+#endif
+    return info;
+}
+
+// 1 if this CPU runs AVX2 and FMA code (the loader then prefers the avx2 build of the library).
+MIPSLAM_API int mipslam_cpu_supports_avx2_fma(void) {
+#if defined(__x86_64__) || defined(__i386__)
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma") ? 1 : 0;
+#else
+    return 0;
+#endif
+}
+
+// First half of the forward: set-up, depth sort and pair counts. *state receives the binning (release it
+// with mipslam_rasterize_release), *count the number of drawn Gaussians M and *pairs the number P of
+// (tile, Gaussian) pairs: the sizes of the arrays mipslam_rasterize_forward fills.
+MIPSLAM_API int mipslam_rasterize_bin(const float* means2d, const float* cov, const float* opacity,
+                                      const float* depth, const float* colors, const int32_t* node_counts,
+                                      int64_t n, int64_t channels, int64_t mode, int64_t width, int64_t height,
+                                      double k_sigma, int64_t threads, void** state, int64_t* count, int64_t* pairs,
+                                      char* err, int64_t err_len) {
+    using namespace mipslam_cpu;
+    *state = nullptr;
+    return guarded(err, err_len, [&] {
+        std::unique_ptr<Binning> b(new Binning());
+        b->in = Inputs{means2d, cov, opacity, depth, colors, node_counts, n, channels};
+        check_settings(b->in, mode, width, height);
+        b->mode = (int)mode;
+        b->width = (int)width;
+        b->height = (int)height;
+        b->tiles_x = (int)((width + TILE - 1) / TILE);
+        b->tiles_y = (int)((height + TILE - 1) / TILE);
+        b->threads = (int)threads;
+        b->k_sigma = (float)k_sigma;
+        bin_gaussians(b.get());
+        *count = (int64_t)b->order.size();
+        *pairs = b->pairs;
+        *state = b.release();
+    });
+}
+
+MIPSLAM_API void mipslam_rasterize_release(void* state) { delete static_cast<mipslam_cpu::Binning*>(state); }
+
+// Second half of the forward: order [M], tile_offsets [tiles + 1], isect_ids [P], pair_offsets [M + 1],
+// isect_pos [P] (the state the backward needs), color [H, W, C], depth [H, W], alpha [H, W], last [H, W]
+// int32 and stats [2] (footprint lanes evaluated, pairs). The inputs given to mipslam_rasterize_bin must
+// still be alive. gl_nodes, gl_weights [exact_order]: Gauss-Legendre rule on [-1, 1] (exact mode).
+MIPSLAM_API int mipslam_rasterize_forward(void* state, double eta, double tau, const float* gl_nodes,
+                                          const float* gl_weights, int64_t exact_order, int32_t* order,
+                                          int32_t* tile_offsets, int32_t* isect_ids, int32_t* pair_offsets,
+                                          int32_t* isect_pos, float* color, float* depth, float* alpha,
+                                          int32_t* last, int64_t* stats, char* err, int64_t err_len) {
+    using namespace mipslam_cpu;
+    return guarded(err, err_len, [&] {
+        MIPSLAM_CHECK(exact_order >= 1 && exact_order <= MAX_ROWS,
+                      "mipslam cpu rasterizer: exact order must be in [1, ", MAX_ROWS, "]");
+        Binning* b = static_cast<Binning*>(state);
+        const Settings settings = make_settings(b->mode, b->k_sigma, eta, tau, gl_nodes, gl_weights, exact_order);
+        rasterize_forward(b, settings, order, tile_offsets, isect_ids, pair_offsets, isect_pos, color, depth, alpha,
+                          last, stats);
+    });
+}
+
+// Gradient of sum(grad_color * color + grad_depth * depth + grad_alpha * alpha) with respect to means2d
+// [N, 2], cov [N, 4], opacity [N], depth [N], colors [N, C] (g_* zero-filled by the caller), from the
+// inputs and the state of the forward.
+MIPSLAM_API int mipslam_rasterize_backward(
+    const float* means2d, const float* cov, const float* opacity, const float* depth, const float* colors,
+    const int32_t* node_counts, int64_t n, int64_t channels, int64_t mode, int64_t width, int64_t height,
+    double k_sigma, double eta, double tau, const float* gl_nodes, const float* gl_weights, int64_t exact_order,
+    const int32_t* order, int64_t count, const int32_t* tile_offsets, const int32_t* isect_ids, int64_t pairs,
+    const int32_t* pair_offsets, const int32_t* isect_pos, const int32_t* last, const float* color,
+    const float* depth_img, const float* alpha_img, const float* grad_color, const float* grad_depth,
+    const float* grad_alpha, int64_t need_color_grad, int64_t need_opacity_grad, int64_t threads, float* g_means2d,
+    float* g_cov, float* g_opacity, float* g_depth, float* g_colors, char* err, int64_t err_len) {
+    using namespace mipslam_cpu;
+    return guarded(err, err_len, [&] {
+        const Inputs in{means2d, cov, opacity, depth, colors, node_counts, n, channels};
+        check_settings(in, mode, width, height);
+        MIPSLAM_CHECK(exact_order >= 1 && exact_order <= MAX_ROWS,
+                      "mipslam cpu rasterizer: exact order must be in [1, ", MAX_ROWS, "]");
+        const Settings settings = make_settings((int)mode, k_sigma, eta, tau, gl_nodes, gl_weights, exact_order);
+        const GradInputs gin{grad_color, grad_depth, grad_alpha, color, depth_img, alpha_img, last};
+        rasterize_backward(in, (int)mode, (int)width, (int)height, settings, order, count, tile_offsets, isect_ids,
+                           pairs, pair_offsets, isect_pos, gin, need_color_grad != 0, need_opacity_grad != 0,
+                           (int)threads, g_means2d, g_cov, g_opacity, g_depth, g_colors);
+    });
+}
+
+namespace {
+
+template <typename T>
+mipslam_cpu::ProjectionInputs<T> projection_inputs(const void* means, const void* quats, const void* scales,
+                                                   const void* opacities, const void* colors, int64_t n,
+                                                   int64_t channels) {
+    return mipslam_cpu::ProjectionInputs<T>{static_cast<const T*>(means), static_cast<const T*>(quats),
+                                            static_cast<const T*>(scales), static_cast<const T*>(opacities),
+                                            static_cast<const T*>(colors), n, channels};
+}
+
+}  // namespace
+
+// The fused projection (projection.h) in float32 (is_double = 0) or float64 (1); every floating array in
+// that type. rate [N] or null. Outputs: means2d [N, 2], depth [N], cov [N, 4], opacity [N], nodes [N] int32,
+// visible [N] bool, radii [N], *n_visible.
+MIPSLAM_API int mipslam_project_forward(int64_t is_double, const void* means, const void* quats, const void* scales,
+                                        const void* opacities, const void* colors, int64_t n, int64_t channels,
+                                        const void* viewmat, const void* K, const void* rate, int64_t width,
+                                        int64_t height, const double* params, int64_t n_params, int64_t threads,
+                                        void* means2d, void* depth, void* cov, void* opacity, int32_t* nodes,
+                                        bool* visible, void* radii, int64_t* n_visible, char* err,
+                                        int64_t err_len) {
+    using namespace mipslam_cpu;
+    return guarded(err, err_len, [&] {
+        auto run = [&](auto zero) {
+            using T = decltype(zero);
+            const auto S = projection_settings<T>(static_cast<const T*>(viewmat), static_cast<const T*>(K),
+                                                  static_cast<const T*>(rate), width, height, params, n_params);
+            *n_visible = project_forward_impl<T>(
+                S, projection_inputs<T>(means, quats, scales, opacities, colors, n, channels), (int)threads,
+                static_cast<T*>(means2d), static_cast<T*>(depth), static_cast<T*>(cov), static_cast<T*>(opacity),
+                nodes, visible, static_cast<T*>(radii));
+        };
+        if (is_double)
+            run(0.0);
+        else
+            run(0.0f);
+    });
+}
+
+// Backward of mipslam_project_forward: incoming gradients (each null when it is zero) -> out_means [N, 3],
+// out_quats [N, 4], out_scales [N, 3], out_opacities [N] (when need_params) and g_viewmat [12] (when
+// need_viewmat; zero-filled by the caller: rotation row-major, then translation), in double.
+MIPSLAM_API int mipslam_project_backward(int64_t is_double, const void* means, const void* quats, const void* scales,
+                                         const void* opacities, const void* colors, int64_t n, int64_t channels,
+                                         const void* viewmat, const void* K, const void* rate, int64_t width,
+                                         int64_t height, const double* params, int64_t n_params,
+                                         const bool* visible, const void* g_means2d, const void* g_depth,
+                                         const void* g_cov, const void* g_opacity, int64_t need_params,
+                                         int64_t need_viewmat, int64_t threads, void* out_means, void* out_quats,
+                                         void* out_scales, void* out_opacities, double* g_viewmat, char* err,
+                                         int64_t err_len) {
+    using namespace mipslam_cpu;
+    return guarded(err, err_len, [&] {
+        auto run = [&](auto zero) {
+            using T = decltype(zero);
+            const auto S = projection_settings<T>(static_cast<const T*>(viewmat), static_cast<const T*>(K),
+                                                  static_cast<const T*>(rate), width, height, params, n_params);
+            project_backward_impl<T>(S, projection_inputs<T>(means, quats, scales, opacities, colors, n, channels),
+                                     (int)threads, visible, static_cast<const T*>(g_means2d),
+                                     static_cast<const T*>(g_depth), static_cast<const T*>(g_cov),
+                                     static_cast<const T*>(g_opacity), need_params != 0, need_viewmat != 0,
+                                     static_cast<T*>(out_means), static_cast<T*>(out_quats),
+                                     static_cast<T*>(out_scales), static_cast<T*>(out_opacities), g_viewmat);
+        };
+        if (is_double)
+            run(0.0);
+        else
+            run(0.0f);
+    });
+}
+
+// Test hook: the vector exp (which = 0) or erf (1) of x [n] into y [n].
+MIPSLAM_API void mipslam_vector_math(const float* x, float* y, int64_t n, int64_t which) {
+    using namespace mipslam_cpu;
+    for (int64_t i = 0; i < n; i += LANES) {
+        vf v = splat(0.f);
+        for (int l = 0; l < LANES && i + l < n; ++l) v[l] = x[i + l];
+        const vf r = which == 0 ? vexp(v) : verf(v);
+        for (int l = 0; l < LANES && i + l < n; ++l) y[i + l] = r[l];
+    }
 }

@@ -1,0 +1,200 @@
+"""Entry points of the compiled backend: :func:`rasterize` (what :func:`mipslam.render.rasterize` calls for
+backend "cpu"/"auto"), the per-pixel stage alone (:func:`rasterize_projected`, a drop-in for the torch
+backend's), the fused projection (:func:`project_footprints`) and its torch reference, and which calls the
+backend cannot take (:func:`unsupported_reason`)."""
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from mipslam.errors import BackendUnavailableError, RenderError
+from mipslam.render import footprint, projection
+from mipslam.render.cpu.autograd import (ProjectFootprints, RasterizeProjected, _gauss_legendre_f32,
+                                         _params_for)
+from mipslam.render.cpu.library import load_extension
+
+#: Footprint kernels of the library: point/mip/ewa are all a centre sample of the mode's covariance.
+MODE_IDS = {"point": 0, "mip": 0, "ewa": 0, "eaa": 1, "exact": 2}
+#: Colour channel counts the library is compiled for (template parameter, not a runtime loop bound).
+SUPPORTED_CHANNELS = (1, 3, 4)
+#: Cap of EAA nodes and of the exact-mode Gauss-Legendre order (MAX_ROWS in footprint_simd.h).
+MAX_ROWS = 64
+
+
+def unsupported_reason(means: torch.Tensor, colors: torch.Tensor, mode: str, options) -> str | None:
+    """Why this call cannot run on the cpu backend (None if it can): device, dtype, channels, caps."""
+    if means.device.type != "cpu":
+        return f"the cpu backend needs CPU tensors, got {means.device}"
+    if means.dtype != torch.float32:
+        return f"the cpu backend computes in float32, got {means.dtype} (use backend='torch' for float64 checks)"
+    if colors.dim() != 2 or colors.shape[1] not in SUPPORTED_CHANNELS:
+        return f"the cpu backend renders {SUPPORTED_CHANNELS} colour channels, got colors of shape {list(colors.shape)}"
+    if mode == "eaa" and int(options.eaa_max_nodes) > MAX_ROWS:
+        return f"the cpu backend supports eaa_max_nodes <= {MAX_ROWS}, got {options.eaa_max_nodes}"
+    if mode == "exact" and int(options.exact_order) > MAX_ROWS:
+        return f"the cpu backend supports exact_order <= {MAX_ROWS}, got {options.exact_order}"
+    return None
+
+
+@dataclasses.dataclass(frozen=True)
+class FootprintProjection:
+    """Per-Gaussian output of the fused projection (aligned with the input order).
+
+    means2d    [N, 2] px    projected centre (-1e6 where not visible)
+    depths     [N]    m     camera-frame z (0 where not visible)
+    cov        [N, 4]       the mode's sampling covariance (xx, xy, yy) px^2 and its determinant px^4
+    opacities  [N]          the mode's opacity (3D filter and energy factor applied; 0 where not visible)
+    node_counts[N]    int32 EAA node count (1 in the other modes)
+    visible    [N]    bool  finite, in front of the near plane, on screen, opacity > 0
+    radii      [N]    px    k-sigma half extent as RenderOutput.radii
+    n_visible  int
+    """
+
+    means2d: torch.Tensor
+    depths: torch.Tensor
+    cov: torch.Tensor
+    opacities: torch.Tensor
+    node_counts: torch.Tensor
+    visible: torch.Tensor
+    radii: torch.Tensor
+    n_visible: int
+
+
+def project_footprints(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, *, mode: str,
+                       options) -> FootprintProjection:
+    """The fused projection (float32 or float64 CPU tensors; differentiable with respect to means, quats,
+    scales, opacities and viewmat). Equals :func:`reference_footprints` (the torch reference) to rounding.
+    ``options``: :class:`mipslam.render.RenderOptions`.
+    """
+    rate = options.max_sampling_rate
+    out = ProjectFootprints.apply(means, quats, scales, opacities, viewmat, colors, K, rate, int(width), int(height),
+                                  _params_for(mode, options), torch.get_num_threads())
+    return FootprintProjection(*out)
+
+
+def _torch_footprints(proj, mode: str, max_nodes: int, gamma: float, single_node_sigma: float):
+    """The torch footprint parameters of projected Gaussians and their EAA node counts (1 outside eaa).
+
+    -> xx, xy, yy, det [N] (the mode's sampling covariance), opacity [N], node counts [N] int64
+    """
+    return footprint.mode_footprint(mode, *proj.cov2d.unbind(-1), proj.cov_det, proj.opacities,
+                                    max_nodes=int(max_nodes), gamma=gamma, single_node_sigma=single_node_sigma)
+
+
+def reference_footprints(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, *, mode: str,
+                         options) -> FootprintProjection:
+    """What :func:`project_footprints` computes, in torch (the readable reference):
+    :func:`~mipslam.render.projection.project_gaussians` with the mode's extent, then
+    :func:`~mipslam.render.footprint.mode_footprint`
+    and the radii of :func:`mipslam.render.rasterize_torch`."""
+    box_mode = mode in ("eaa", "exact")
+    dilation = footprint.MODE_DILATION.get(mode, 0.0)
+    proj = projection.project_gaussians(
+        means, quats, scales, opacities, colors, viewmat, K, width, height, near_plane=options.near_plane,
+        far_plane=options.far_plane, extent_sigma=footprint.EXACT_K_SIGMA if mode == "exact" else options.k_sigma,
+        extent_pad=0.5 if box_mode else 0.0, extent_dilation=dilation, filter_3d_scale=options.filter_3d_scale,
+        max_sampling_rate=options.max_sampling_rate)
+    xx, xy, yy, det, opacity, nodes = _torch_footprints(proj, mode, options.eaa_max_nodes, options.eaa_gamma,
+                                                        options.eaa_single_node_sigma)
+    with torch.no_grad():
+        ext = options.k_sigma * torch.sqrt(torch.maximum(proj.cov2d[:, 0], proj.cov2d[:, 2]) + dilation)
+        radii = torch.where(proj.visible, ext + (0.5 if box_mode else 0.0), torch.zeros_like(ext))
+    return FootprintProjection(means2d=proj.means2d, depths=proj.depths, cov=torch.stack([xx, xy, yy, det], -1),
+                               opacities=opacity, node_counts=nodes.to(torch.int32), visible=proj.visible,
+                               radii=radii, n_visible=int(proj.visible.sum()))
+
+
+@dataclasses.dataclass(frozen=True)
+class CpuImage:
+    """Raw output of :func:`rasterize_projected`.  color [H, W, C], depth [H, W], alpha [H, W]
+
+    ``lanes_evaluated``: footprint evaluations the kernel made (8-pixel row segments x 8), ``pairs``:
+    (tile, Gaussian) pairs after binning.
+    """
+
+    color: torch.Tensor
+    depth: torch.Tensor
+    alpha: torch.Tensor
+    lanes_evaluated: int
+    pairs: int
+
+
+def rasterize_projected(proj, width: int, height: int, settings, **_unused) -> CpuImage:
+    """Drop-in for :func:`mipslam.render.rasterize_torch.rasterize_projected` on the compiled backend.
+
+    ``proj``: :class:`~mipslam.render.projection.ProjectedGaussians` (float32, CPU); ``settings``:
+    :class:`~mipslam.render.rasterize_torch.FootprintSettings`. Tiling options of the torch backend
+    (tile_size, pair_budget, checkpoint) do not apply (the extension uses 16x16 tiles and O(pairs) memory).
+    """
+    mode = settings.mode
+    if mode not in MODE_IDS:
+        raise RenderError(f"rasterize (cpu backend): unknown mode '{mode}'")
+    xx, xy, yy, det, opacity, node_counts = _torch_footprints(proj, mode, settings.max_nodes, settings.gamma,
+                                                              settings.single_node_sigma)
+    gl_nodes, gl_weights = _gauss_legendre_f32(settings.exact_order if mode == "exact" else 1)
+    cov = torch.stack([xx, xy, yy, det], -1)
+    color, depth, alpha, stats = RasterizeProjected.apply(
+        proj.means2d.contiguous(), cov.contiguous(), opacity.contiguous(), proj.depths.contiguous(),
+        proj.colors.contiguous(), node_counts.to(torch.int32).contiguous(), MODE_IDS[mode], int(width), int(height),
+        float(settings.k_sigma), float(settings.eta), float(settings.tau), gl_nodes, gl_weights,
+        torch.get_num_threads())
+    return CpuImage(color=color, depth=depth, alpha=alpha, lanes_evaluated=int(stats[0]), pairs=int(stats[1]))
+
+
+def _fused_projection_applies(means, K, options) -> bool:
+    """The fused projection treats K and the 3D filter's sampling rate as constants; when either needs a
+    gradient (or the rate is not a plain [N] tensor of the means' dtype) the torch projection is used."""
+    if K.requires_grad:
+        return False
+    rate = options.max_sampling_rate
+    return rate is None or (not rate.requires_grad and rate.dtype == means.dtype and rate.device == means.device
+                            and tuple(rate.shape) == (means.shape[0],))
+
+
+def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, *, mode: str, options):
+    """:func:`mipslam.render.rasterize` on the compiled backend (shapes and dtypes already checked by it; the
+    camera's values are checked here, in C++).
+
+    Two C++ stages, each an autograd function with a hand-written backward: the fused projection
+    (:class:`ProjectFootprints`) and the tile rasterizer (:class:`RasterizeProjected`).
+    """
+    from mipslam.render import RenderOutput
+
+    reason = unsupported_reason(means, colors, mode, options)
+    if reason is not None:
+        raise BackendUnavailableError(f"rasterize: {reason}")
+    load_extension()
+    if not _fused_projection_applies(means, K, options):
+        return rasterize_unfused(means, quats, scales, opacities, colors, viewmat, K, width, height, mode=mode,
+                                 options=options)
+    if options.pose_only:
+        means, quats, scales, opacities, colors = (t.detach() for t in (means, quats, scales, opacities, colors))
+    threads = torch.get_num_threads()
+    # a bad camera raises RenderError from the library's checks (projection.h)
+    means2d, depths, cov, opacity, node_counts, visible, radii, n_visible = ProjectFootprints.apply(
+        means, quats, scales, opacities, viewmat, colors, K, options.max_sampling_rate, width, height,
+        _params_for(mode, options), threads)
+    gl_nodes, gl_weights = _gauss_legendre_f32(options.exact_order if mode == "exact" else 1)
+    color, depth, alpha, _stats = RasterizeProjected.apply(
+        means2d, cov, opacity, depths, colors.contiguous(), node_counts, MODE_IDS[mode], width, height,
+        float(options.k_sigma), float(options.eaa_eta), float(options.eaa_tau), gl_nodes, gl_weights, threads)
+    depth_normalized = None
+    if options.normalized_depth:
+        depth_normalized = torch.where(alpha > 1e-6, depth / alpha.clamp_min(1e-6), torch.zeros_like(depth))
+    return RenderOutput(color=color, depth=depth, alpha=alpha, depth_normalized=depth_normalized, means2d=means2d,
+                        radii=radii, visible=visible, n_visible=n_visible, depths=depths, mode=mode,
+                        backend="cpu")
+
+
+def rasterize_unfused(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, *, mode: str,
+                      options):
+    """The cpu backend with the torch projection (autograd through ~100 tensor operations) in front of the
+    C++ rasterizer: the path before the fused projection, kept for gradients with respect to K or the 3D
+    filter's sampling rate, and as the benchmark's baseline."""
+    from mipslam.render import _check_camera_values, rasterize_torch
+
+    _check_camera_values(viewmat, K)
+    out = rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width, height, mode, options,
+                          rasterizer=rasterize_projected)
+    return dataclasses.replace(out, backend="cpu")
