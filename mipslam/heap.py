@@ -9,7 +9,7 @@ the arenas' free space grew from 7 to 15 MiB over 300 frames while the allocated
 :func:`set_mmap_threshold` attacks the cause: glibc serves a block from ``mmap`` (returned to the OS
 on ``free``) only above a threshold that it raises after every large free, up to 32 MiB, so a run's
 tensors soon all come from the heap and fragment it. A fixed threshold keeps them out of the heap:
-at 64 KiB the heap stopped growing over the second lap of that run (docs/robustness.md, failure 10).
+at 64 KiB the heap stopped growing over the second lap of that run (docs/robustness.md, "Long runs", memory).
 The price is a page-faulting ``mmap``/``munmap`` pair for every large tensor: 11 % fewer frames/s
 on the 160x120 ``fast`` benchmark, so the pipeline applies it only where ``run.mmap_threshold_kib``
 asks for it.

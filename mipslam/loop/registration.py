@@ -64,7 +64,7 @@ def _open3d():
             "'open3d-cpu' package and, on Debian/Ubuntu, the system library 'libusb-1.0-0'"
         ) from err
     # One thread: Open3D's parallel reductions (ICP normal equations, information matrices) sum in an
-    # order that changes from run to run, which broke bit-identical resume (docs/robustness.md, 11).
+    # order that changes from run to run, which broke bit-identical resume (docs/robustness.md, "Interrupted runs").
     # A registration takes a few milliseconds at SLAM resolutions, so nothing is lost.
     if hasattr(o3d.utility, "set_max_threads") and o3d.utility.get_max_threads() != 1:
         o3d.utility.set_max_threads(1)
