@@ -170,8 +170,10 @@ class Mapper:
         out = render_view(g, T_cw, view.intrinsics, self.render_config)
         color = apply_affine_exposure(out.color, view.exposure[0], view.exposure[1])
         if masks is None:
-            masks = rgbd_masks(view.color, view.depth)
-        loss = rgbd_l1_loss(color, out.depth, view.color, view.depth, alpha_color=cfg.alpha_color, masks=masks).total
+            masks = rgbd_masks(view.color, view.depth, max_depth=cfg.max_depth)
+        loss = rgbd_l1_loss(color, out.depth, view.color, view.depth, alpha_color=cfg.alpha_color, masks=masks,
+                            depth_alpha=out.alpha if cfg.depth_normalise else None,
+                            depth_alpha_floor=cfg.depth_alpha_floor).total
         if cfg.isotropy_weight > 0:  # over the whole map, seen or not
             scales = g.scales if rows is None else torch.exp(gmap.log_scales)
             loss = loss + cfg.isotropy_weight * isotropy_loss(scales)
@@ -247,7 +249,8 @@ class Mapper:
         """A view's loss masks and the rows of the Gaussians it can draw from ``T_cw`` [4, 4] (None: all)."""
         seen = frustum_indices(gmap.means, torch.exp(gmap.log_scales.detach()), T_cw, view.intrinsics,
                                self.render_config)
-        return rgbd_masks(view.color, view.depth), None if len(seen) == len(gmap) else seen
+        masks = rgbd_masks(view.color, view.depth, max_depth=self.config.max_depth)
+        return masks, None if len(seen) == len(gmap) else seen
 
     def map_keyframe(self, gmap: GaussianMap, optimizer: GaussianOptimizer, views: list[MappingView], *,
                      iterations: int, generator: torch.Generator, frame_index: int) -> MappingResult:
