@@ -201,9 +201,13 @@ class TrackingConfig:
     depth_normalise: bool = False
     depth_alpha_floor: float = 0.5
     max_depth: float = 0.0  # metres; observed depth beyond it stays out of the depth term (0 = no limit)
+    # Depth pixels whose residual exceeds this many times the median residual leave the depth term (0 = off):
+    # disocclusions the map does not hold pull the pose back towards the keyframes that built it (docs/mapping.md).
+    depth_outlier_ratio: float = 0.0
 
     def __post_init__(self):
         _check(self.iterations >= 1, "tracking.iterations", "must be >= 1")
+        _check(self.depth_outlier_ratio >= 0, "tracking.depth_outlier_ratio", "must be >= 0 (0 = off)")
         _check(0 < self.depth_alpha_floor <= 1, "tracking.depth_alpha_floor", "must be in (0, 1]")
         _check(self.max_depth >= 0, "tracking.max_depth", "must be >= 0 metres (0 = no limit)")
         _check(0 <= self.alpha_color <= 1, "tracking.alpha_color", "must be in [0, 1]")
@@ -291,9 +295,13 @@ class MappingConfig:
     depth_normalise: bool = False
     depth_alpha_floor: float = 0.5
     max_depth: float = 0.0  # metres; observed depth beyond it stays out of the depth term (0 = no limit)
+    # Keyframe images (and loss masks) mapping keeps on the device, most recently used first, instead of reading
+    # them from disk again on every revisit; 0 = none. 64 at 320x240 is about 80 MB (docs/mapping.md).
+    keyframe_cache: int = 64
 
     def __post_init__(self):
         _check(self.iterations >= 0, "mapping.iterations", "must be >= 0")
+        _check(self.keyframe_cache >= 0, "mapping.keyframe_cache", "must be >= 0 (0 = no cache)")
         _check(0 < self.depth_alpha_floor <= 1, "mapping.depth_alpha_floor", "must be in (0, 1]")
         _check(self.max_depth >= 0, "mapping.max_depth", "must be >= 0 metres (0 = no limit)")
         _check(self.final_iterations >= 0, "mapping.final_iterations", "must be >= 0 (0 = off)")

@@ -11,6 +11,7 @@ from mipslam.losses.photometric import (
     apply_affine_exposure,
     image_gradient_magnitude,
     image_gradient_mask,
+    depth_inlier_mask,
     masked_l1,
     normalised_depth,
     rgbd_l1_loss,
@@ -298,3 +299,16 @@ def test_a_translucent_map_pulls_the_camera_along_its_axis_only_with_the_raw_dep
         assert abs(float(rho[2])) < 3e-3, rho
     else:
         assert float(rho[2]) > 0.1, (rho, opacity)
+
+
+def test_depth_outliers_leave_the_depth_term():
+    color_gt, depth_gt = _frame()
+    depth = depth_gt + 0.01  # 1 cm everywhere ...
+    depth[0, :4] += 0.5  # ... and a disocclusion: 4 pixels 51 cm off
+    mask = depth_gt > 0
+    inliers = depth_inlier_mask(depth, depth_gt, mask, ratio=10.0)
+    assert int((~inliers).sum()) == 4 and not inliers[0, :4].any()
+    kept = rgbd_l1_loss(color_gt, depth, color_gt, depth_gt, alpha_color=0.0, depth_outlier_ratio=10.0)
+    assert kept.num_depth_pixels == 12 * 16 - 4
+    assert kept.depth.item() == pytest.approx(0.01, abs=1e-5)
+    assert rgbd_l1_loss(color_gt, depth, color_gt, depth_gt, alpha_color=0.0).depth.item() > 0.015

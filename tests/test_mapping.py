@@ -84,3 +84,35 @@ def test_mapping_a_view_without_the_gaussians_it_cannot_draw_changes_nothing(tin
     assert ends[0][0] == pytest.approx(ends[1][0], rel=1e-5)
     for name in ("means", "log_scales", "opacity_logits", "colors_raw"):
         assert torch.allclose(getattr(ends[0][1], name), getattr(ends[1][1], name), atol=1e-5), name
+
+
+def test_keyframe_images_reads_each_keyframe_once_while_it_stays_cached(tiny_sequence):
+    from mipslam.datasets import FrameCache, make_sequence
+    from mipslam.losses.photometric import rgbd_masks
+    from mipslam.mapping import KeyframeImages
+    from tiny_runs import tiny_config
+
+    sequence = make_sequence(tiny_config(tiny_sequence).dataset)
+    reads = []
+    read = sequence.__getitem__
+
+    class Counting:  # the real reader, counting its reads
+        def __getitem__(self, index):
+            reads.append(index)
+            return read(index)
+
+    frames = FrameCache(Counting(), torch.device("cpu"), capacity=1)  # the run's cache keeps only the latest frame
+    images = KeyframeImages(capacity=2, max_depth=0.0)
+    for index in (0, 3, 0, 3, 0):
+        frame, masks = images.get(frames, index)
+    assert reads == [0, 3]
+    assert torch.equal(frame.color, sequence[0].color) and torch.equal(frame.depth, sequence[0].depth)
+    assert torch.equal(masks.depth, rgbd_masks(frame.color, frame.depth).depth)
+    images.get(frames, 5)  # evicts keyframe 3, the least recently used
+    images.get(frames, 0)
+    images.get(frames, 3)
+    assert reads == [0, 3, 5, 3]
+    uncached = KeyframeImages(capacity=0)
+    for index in (4, 2, 4):
+        uncached.get(frames, index)
+    assert reads[-3:] == [4, 2, 4]

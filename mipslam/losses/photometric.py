@@ -18,6 +18,11 @@
   ``D / stopgrad(max(A, floor))`` instead: unbiased wherever ``A >= floor``; below the floor (a thin map) it
   keeps the raw term's push towards more opacity. The stop-gradient leaves opacity to the colour term, so
   the depth term cannot lower ``A`` to move the normalised depth.
+* Depth outliers (optional, ``depth_outlier_ratio``): pixels whose depth residual exceeds that many times the
+  median residual of the depth mask leave the depth term (SplaTAM's rule). Those are disocclusions and
+  depth edges the map does not hold from this view; their residuals are metres where the rest are
+  millimetres, and since they grow as the camera moves away from the views that built the map, an L1 term
+  that keeps them pulls the pose back towards those views.
 * Depth range (optional, ``max_depth`` of :func:`rgbd_masks`): observed depth beyond it is ignored in the depth
   term (the sensor's error grows with ``z^2``; far readings are the least reliable).
 * Exposure: ``exp(a) * I + b`` per frame (gain ``a`` in log space so the gain stays positive), see
@@ -41,6 +46,7 @@ __all__ = [
     "apply_affine_exposure",
     "image_gradient_magnitude",
     "image_gradient_mask",
+    "depth_inlier_mask",
     "masked_l1",
     "normalised_depth",
     "rgbd_l1_loss",
@@ -276,6 +282,23 @@ def normalised_depth(
     return depth / alpha.detach().clamp(min=floor)
 
 
+def depth_inlier_mask(
+    depth: torch.Tensor,  # [H, W] rendered depth, metres
+    depth_gt: torch.Tensor,  # [H, W] observed depth, metres
+    mask: torch.Tensor,  # [H, W] bool, the depth term's pixels
+    ratio: float,
+) -> torch.Tensor:  # [H, W] bool
+    """``mask`` without the pixels whose residual ``|D - D_gt|`` exceeds ``ratio`` times its median over ``mask``."""
+    if ratio <= 0:
+        raise ValueError(f"depth_inlier_mask: ratio must be positive, got {ratio}")
+    with torch.no_grad():
+        residual = torch.where(mask, (depth.detach() - depth_gt).abs(), torch.zeros_like(depth_gt))
+        if not bool(mask.any()):
+            return mask
+        median = residual[mask].median()
+        return mask & (residual <= ratio * median)
+
+
 def rgbd_l1_loss(
     color: torch.Tensor,  # [H, W, C] rendered colour in [0, 1]
     depth: torch.Tensor,  # [H, W] rendered depth, metres
@@ -291,6 +314,7 @@ def rgbd_l1_loss(
     exposure: nn.Module | None = None,
     depth_alpha: torch.Tensor | None = None,  # [H, W] rendered opacity: compare the alpha-normalised depth
     depth_alpha_floor: float = DEFAULT_DEPTH_ALPHA_FLOOR,
+    depth_outlier_ratio: float = 0.0,
 ) -> RGBDLoss:
     """The tracking/mapping loss of DESIGN.md (formula in the module docstring).
 
@@ -299,6 +323,7 @@ def rgbd_l1_loss(
     :class:`AffineExposure`) is applied to the rendered colour before the comparison. ``depth_alpha`` (the
     render's opacity [H, W]) makes the depth term compare :func:`normalised_depth` ``D / stopgrad(max(A,
     depth_alpha_floor))`` with the observed depth (module docstring); None compares the raw ``D``.
+    ``depth_outlier_ratio`` > 0 drops depth pixels whose residual exceeds that many times the median residual.
     """
     if not 0.0 <= alpha_color <= 1.0:
         raise ValueError(f"alpha_color must be in [0, 1], got {alpha_color}")
@@ -320,7 +345,10 @@ def rgbd_l1_loss(
     color_term, num_color = masked_l1(corrected, color_gt, masks.color)
     if depth_alpha is not None:
         depth = normalised_depth(depth, depth_alpha, depth_alpha_floor)
-    depth_term, num_depth = masked_l1(depth, depth_gt, masks.depth)
+    depth_mask = masks.depth
+    if depth_outlier_ratio > 0:
+        depth_mask = depth_inlier_mask(depth, depth_gt, depth_mask, depth_outlier_ratio)
+    depth_term, num_depth = masked_l1(depth, depth_gt, depth_mask)
     total = alpha_color * color_term + (1.0 - alpha_color) * depth_term
     return RGBDLoss(
         total=total, color=color_term, depth=depth_term, num_color_pixels=num_color, num_depth_pixels=num_depth
