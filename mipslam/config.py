@@ -298,9 +298,13 @@ class MappingConfig:
     # Keyframe images (and loss masks) mapping keeps on the device, most recently used first, instead of reading
     # them from disk again on every revisit; 0 = none. 64 at 320x240 is about 80 MB (docs/mapping.md).
     keyframe_cache: int = 64
+    # Weight of mean(1 - A) over pixels with valid depth (0 = off). The raw depth term raised the opacity A; the
+    # alpha-normalised one does not, so depth_normalise needs this to keep the map opaque (docs/mapping.md).
+    opacity_weight: float = 0.0
 
     def __post_init__(self):
         _check(self.iterations >= 0, "mapping.iterations", "must be >= 0")
+        _check(self.opacity_weight >= 0, "mapping.opacity_weight", "must be >= 0 (0 = off)")
         _check(self.keyframe_cache >= 0, "mapping.keyframe_cache", "must be >= 0 (0 = no cache)")
         _check(0 < self.depth_alpha_floor <= 1, "mapping.depth_alpha_floor", "must be in (0, 1]")
         _check(self.max_depth >= 0, "mapping.max_depth", "must be >= 0 metres (0 = no limit)")

@@ -11,7 +11,9 @@ On each keyframe (DESIGN.md "Losses" and "Model only what a scene requires"):
    gauge) for ``iterations`` Adam steps; step ``i`` uses the newest keyframe on even steps and a
    keyframe drawn with the run's generator from the others on odd steps. Loss per view:
    ``alpha_c |exposure(I) - I_gt| + (1 - alpha_c) |D - D_gt|`` (means over valid pixels)
-   ``+ isotropy_weight * isotropy(scales) + lambda_freq * L_freq(I, I_gt)``; each view renders the
+   ``+ opacity_weight * mean(1 - A) + isotropy_weight * isotropy(scales) + lambda_freq * L_freq(I, I_gt)``
+   (``A`` the rendered opacity over pixels with valid depth; with ``depth_normalise`` the depth term compares
+   ``D / A`` and no longer raises opacity itself); each view renders the
    Gaussians that can reach it from its starting pose (``render.frustum_margin``), the isotropy term
    covers the whole map;
 3. prune Gaussians with negligible opacity, non-finite values or an absurd size, and enforce the cap.
@@ -49,7 +51,7 @@ from mipslam.gaussians import (
 from mipslam.geometry import nearest_rigid
 from mipslam.geometry.se3 import se3_exp, se3_inverse
 from mipslam.losses.frequency import frequency_loss
-from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, rgbd_l1_loss, rgbd_masks
+from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, coverage_loss, rgbd_l1_loss, rgbd_masks
 from mipslam.losses.regularizers import isotropy_loss
 from mipslam.rendering import frustum_indices, render_view, view_sampling_rates
 from mipslam.types import Intrinsics
@@ -207,6 +209,8 @@ class Mapper:
         loss = rgbd_l1_loss(color, out.depth, view.color, view.depth, alpha_color=cfg.alpha_color, masks=masks,
                             depth_alpha=out.alpha if cfg.depth_normalise else None,
                             depth_alpha_floor=cfg.depth_alpha_floor).total
+        if cfg.opacity_weight > 0:  # the sensor saw a surface at these pixels: the map should be opaque there
+            loss = loss + cfg.opacity_weight * coverage_loss(out.alpha, masks.depth)
         if cfg.isotropy_weight > 0:  # over the whole map, seen or not
             scales = g.scales if rows is None else torch.exp(gmap.log_scales)
             loss = loss + cfg.isotropy_weight * isotropy_loss(scales)

@@ -9,6 +9,7 @@ import torch
 from mipslam.losses.photometric import (
     AffineExposure,
     apply_affine_exposure,
+    coverage_loss,
     image_gradient_magnitude,
     image_gradient_mask,
     depth_inlier_mask,
@@ -312,3 +313,12 @@ def test_depth_outliers_leave_the_depth_term():
     assert kept.num_depth_pixels == 12 * 16 - 4
     assert kept.depth.item() == pytest.approx(0.01, abs=1e-5)
     assert rgbd_l1_loss(color_gt, depth, color_gt, depth_gt, alpha_color=0.0).depth.item() > 0.015
+
+
+def test_coverage_loss_is_the_missing_opacity_where_the_sensor_saw_a_surface():
+    alpha = torch.tensor([[1.0, 0.5], [0.25, 0.0]], requires_grad=True)
+    measured = torch.tensor([[True, True], [True, False]])  # no depth at the last pixel: no surface to cover
+    value = coverage_loss(alpha, measured)
+    assert value.item() == pytest.approx((0.0 + 0.5 + 0.75) / 3)
+    value.backward()
+    assert torch.allclose(alpha.grad, torch.tensor([[0.0, -1 / 3], [-1 / 3, 0.0]]))

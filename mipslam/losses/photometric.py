@@ -42,6 +42,7 @@ from torch import nn
 __all__ = [
     "AffineExposure",
     "RGBDLoss",
+    "coverage_loss",
     "RGBDMasks",
     "apply_affine_exposure",
     "image_gradient_magnitude",
@@ -297,6 +298,17 @@ def depth_inlier_mask(
             return mask
         median = residual[mask].median()
         return mask & (residual <= ratio * median)
+
+
+def coverage_loss(
+    alpha: torch.Tensor,  # [H, W] rendered opacity in [0, 1]
+    mask: torch.Tensor,  # [H, W] bool, pixels where the sensor measured a surface
+) -> torch.Tensor:  # [] scalar
+    """``mean(1 - A)`` over ``mask``: where the sensor saw a surface the map should be opaque (0 for an empty mask).
+
+    Pairs with the alpha-normalised depth term, which places the surface but leaves opacity alone."""
+    value, _ = masked_l1(alpha, torch.ones_like(alpha), mask)
+    return value
 
 
 def rgbd_l1_loss(
