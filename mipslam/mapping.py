@@ -359,7 +359,8 @@ def refine_map(mapper: Mapper, state: "SLAMState", frames: "FrameCache") -> int:
         return 0
     passes = -(-iterations // count)
     order = torch.cat([torch.randperm(count, generator=state.generator) for _ in range(passes)])[:iterations]
-    views = (mapping_view(state, frames, int(k), mapper.keyframe_images) for k in order)  # Mapper.refine never moves a pose
+    # Mapper.refine never moves a pose
+    views = (mapping_view(state, frames, int(k), mapper.keyframe_images) for k in order)
     losses = mapper.refine(state.gaussian_map, state.optimizer, views)
     if losses:
         n = min(count, len(losses))

@@ -122,8 +122,8 @@ class Tracker:
                           pose_only=True)
         masks = level.target_masks.where_opaque(out.alpha, self.config.opacity_threshold)
         color = out.color if exposure is None else apply_affine_exposure(out.color, exposure[0], exposure[1])
-        return rgbd_l1_loss(color, out.depth, level.color, level.depth, alpha_color=self.config.alpha_color, masks=masks,
-                            depth_alpha=out.alpha if self.config.depth_normalise else None,
+        return rgbd_l1_loss(color, out.depth, level.color, level.depth, alpha_color=self.config.alpha_color,
+                            masks=masks, depth_alpha=out.alpha if self.config.depth_normalise else None,
                             depth_alpha_floor=self.config.depth_alpha_floor,
                             depth_outlier_ratio=self.config.depth_outlier_ratio)
 
