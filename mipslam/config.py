@@ -201,9 +201,21 @@ class TrackingConfig:
     # mip tracking kept the ATE within the seed spread; at 160x120 it cost 0.2-0.3 cm (docs/bench.md
     # "Session 9"). The balanced preset sets mip.
     render_mode: Literal["point", "mip", "ewa", "eaa", "exact"] | None = None
+    # Depth term on the alpha-normalised rendered depth D / max(A, depth_alpha_floor) instead of the raw
+    # D = sum T a z, which reads short wherever the map's opacity A < 1 and so pulls the camera towards
+    # the surface (mipslam/losses/photometric.py; docs/mapping.md).
+    depth_normalise: bool = False
+    depth_alpha_floor: float = 0.5
+    max_depth: float = 0.0  # metres; observed depth beyond it stays out of the depth term (0 = no limit)
+    # Depth pixels whose residual exceeds this many times the median residual leave the depth term (0 = off):
+    # disocclusions the map does not hold pull the pose back towards the keyframes that built it (docs/mapping.md).
+    depth_outlier_ratio: float = 0.0
 
     def __post_init__(self):
         _check(self.iterations >= 1, "tracking.iterations", "must be >= 1")
+        _check(self.depth_outlier_ratio >= 0, "tracking.depth_outlier_ratio", "must be >= 0 (0 = off)")
+        _check(0 < self.depth_alpha_floor <= 1, "tracking.depth_alpha_floor", "must be in (0, 1]")
+        _check(self.max_depth >= 0, "tracking.max_depth", "must be >= 0 metres (0 = no limit)")
         _check(0 <= self.alpha_color <= 1, "tracking.alpha_color", "must be in [0, 1]")
         _check(self.lr_translation > 0 and self.lr_rotation > 0, "tracking.lr_*", "learning rates must be positive")
         _check(0 < self.lr_final_ratio <= 1, "tracking.lr_final_ratio", "must be in (0, 1] (1 = constant rate)")
@@ -284,9 +296,24 @@ class MappingConfig:
     # fixed, no densification: a final refinement like MonoGS's colour refinement. Keyframes mapped early saw
     # only their own mapping steps and a few random revisits; this evens that out. 0 = off.
     final_iterations: int = 0
+    # Depth term on the alpha-normalised rendered depth D / max(A, depth_alpha_floor): where the map's
+    # opacity A < 1 the raw D = sum T a z is minimised by Gaussians 1 / A - 1 too far (docs/mapping.md).
+    depth_normalise: bool = False
+    depth_alpha_floor: float = 0.5
+    max_depth: float = 0.0  # metres; observed depth beyond it stays out of the depth term (0 = no limit)
+    # Keyframe images (and loss masks) mapping keeps on the device, most recently used first, instead of reading
+    # them from disk again on every revisit; 0 = none. 64 at 320x240 is about 80 MB (docs/mapping.md).
+    keyframe_cache: int = 64
+    # Weight of mean(1 - A) over pixels with valid depth (0 = off). The raw depth term raised the opacity A; the
+    # alpha-normalised one does not, so depth_normalise needs this to keep the map opaque (docs/mapping.md).
+    opacity_weight: float = 0.0
 
     def __post_init__(self):
         _check(self.iterations >= 0, "mapping.iterations", "must be >= 0")
+        _check(self.opacity_weight >= 0, "mapping.opacity_weight", "must be >= 0 (0 = off)")
+        _check(self.keyframe_cache >= 0, "mapping.keyframe_cache", "must be >= 0 (0 = no cache)")
+        _check(0 < self.depth_alpha_floor <= 1, "mapping.depth_alpha_floor", "must be in (0, 1]")
+        _check(self.max_depth >= 0, "mapping.max_depth", "must be >= 0 metres (0 = no limit)")
         _check(self.final_iterations >= 0, "mapping.final_iterations", "must be >= 0 (0 = off)")
         _check(self.max_gaussians >= 1, "mapping.max_gaussians", "must be >= 1")
         _check(self.freq_patch >= 2, "mapping.freq_patch", "must be >= 2")

@@ -11,7 +11,9 @@ On each keyframe (DESIGN.md "Losses" and "Model only what a scene requires"):
    gauge) for ``iterations`` Adam steps; step ``i`` uses the newest keyframe on even steps and a
    keyframe drawn with the run's generator from the others on odd steps. Loss per view:
    ``alpha_c |exposure(I) - I_gt| + (1 - alpha_c) |D - D_gt|`` (means over valid pixels)
-   ``+ isotropy_weight * isotropy(scales) + lambda_freq * L_freq(I, I_gt)``; each view renders the
+   ``+ opacity_weight * mean(1 - A) + isotropy_weight * isotropy(scales) + lambda_freq * L_freq(I, I_gt)``
+   (``A`` the rendered opacity over pixels with valid depth; with ``depth_normalise`` the depth term compares
+   ``D / A`` and no longer raises opacity itself); each view renders the
    Gaussians that can reach it from its starting pose (``render.frustum_margin``), the isotropy term
    covers the whole map;
 3. prune Gaussians with negligible opacity, non-finite values or an absurd size, and enforce the cap.
@@ -28,6 +30,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Iterable
 
@@ -48,13 +51,14 @@ from mipslam.gaussians import (
 from mipslam.geometry import nearest_rigid
 from mipslam.geometry.se3 import se3_exp, se3_inverse
 from mipslam.losses.frequency import frequency_loss
-from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, rgbd_l1_loss, rgbd_masks
+from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, coverage_loss, rgbd_l1_loss, rgbd_masks
 from mipslam.losses.regularizers import isotropy_loss
 from mipslam.rendering import frustum_indices, render_view, view_sampling_rates
 from mipslam.types import Intrinsics
 
 if TYPE_CHECKING:
     from mipslam.datasets import FrameCache
+    from mipslam.types import Frame
     from mipslam.state import FrameRecord, SLAMState
 
 log = logging.getLogger(__name__)
@@ -74,6 +78,7 @@ class MappingView:
     exposure: torch.Tensor
     intrinsics: Intrinsics
     optimize_pose: bool
+    masks: RGBDMasks | None = None  # the loss masks of color/depth (:func:`rgbd_masks`); None: computed when used
 
 
 @dataclass(frozen=True)
@@ -88,12 +93,41 @@ class MappingResult:
     refined_T_wc: tuple[tuple[int, torch.Tensor], ...]
 
 
+class KeyframeImages:
+    """The images and loss masks of the last ``capacity`` keyframes mapping trained on, on the frames' device.
+
+    Mapping revisits its window's keyframes on every keyframe, and the final refinement all of them; the
+    run's frame cache holds the latest *frames*, so most of those keyframes had left it and were read and
+    resized from disk again (178 reads for 40 TUM frames instead of 40; 7 % of the CPU time of a ``fast`` run,
+    docs/mapping.md). Readers are deterministic, so a cached keyframe is exactly the one a read would give.
+    """
+
+    def __init__(self, capacity: int, max_depth: float = 0.0):
+        self.capacity, self.max_depth = capacity, max_depth
+        self._entries: OrderedDict[int, tuple["Frame", RGBDMasks]] = OrderedDict()
+
+    def get(self, frames: "FrameCache", index: int) -> tuple["Frame", RGBDMasks]:
+        """Frame ``index`` (colour [H, W, 3], depth [H, W] metres) and its :func:`rgbd_masks`."""
+        entry = self._entries.get(index)
+        if entry is not None:
+            self._entries.move_to_end(index)
+            return entry
+        frame = frames[index]
+        entry = (frame, rgbd_masks(frame.color, frame.depth, max_depth=self.max_depth))
+        if self.capacity > 0:
+            self._entries[index] = entry
+            while len(self._entries) > self.capacity:
+                self._entries.popitem(last=False)
+        return entry
+
+
 class Mapper:
     """Maps keyframes (reads only the mapping and render config sections)."""
 
     def __init__(self, config: MappingConfig, render_config: RenderConfig):
         self.config = config
         self.render_config = render_config
+        self.keyframe_images = KeyframeImages(config.keyframe_cache, config.max_depth)
 
     # ------------------------------------------------------------------ densify / prune
 
@@ -170,8 +204,13 @@ class Mapper:
         out = render_view(g, T_cw, view.intrinsics, self.render_config)
         color = apply_affine_exposure(out.color, view.exposure[0], view.exposure[1])
         if masks is None:
-            masks = rgbd_masks(view.color, view.depth)
-        loss = rgbd_l1_loss(color, out.depth, view.color, view.depth, alpha_color=cfg.alpha_color, masks=masks).total
+            masks = view.masks if view.masks is not None else rgbd_masks(view.color, view.depth,
+                                                                          max_depth=cfg.max_depth)
+        loss = rgbd_l1_loss(color, out.depth, view.color, view.depth, alpha_color=cfg.alpha_color, masks=masks,
+                            depth_alpha=out.alpha if cfg.depth_normalise else None,
+                            depth_alpha_floor=cfg.depth_alpha_floor).total
+        if cfg.opacity_weight > 0:  # the sensor saw a surface at these pixels: the map should be opaque there
+            loss = loss + cfg.opacity_weight * coverage_loss(out.alpha, masks.depth)
         if cfg.isotropy_weight > 0:  # over the whole map, seen or not
             scales = g.scales if rows is None else torch.exp(gmap.log_scales)
             loss = loss + cfg.isotropy_weight * isotropy_loss(scales)
@@ -247,7 +286,10 @@ class Mapper:
         """A view's loss masks and the rows of the Gaussians it can draw from ``T_cw`` [4, 4] (None: all)."""
         seen = frustum_indices(gmap.means, torch.exp(gmap.log_scales.detach()), T_cw, view.intrinsics,
                                self.render_config)
-        return rgbd_masks(view.color, view.depth), None if len(seen) == len(gmap) else seen
+        masks = view.masks
+        if masks is None:
+            masks = rgbd_masks(view.color, view.depth, max_depth=self.config.max_depth)
+        return masks, None if len(seen) == len(gmap) else seen
 
     def map_keyframe(self, gmap: GaussianMap, optimizer: GaussianOptimizer, views: list[MappingView], *,
                      iterations: int, generator: torch.Generator, frame_index: int) -> MappingResult:
@@ -263,13 +305,17 @@ class Mapper:
 
 # ----------------------------------------------------------------------------- the steps in the frame loop
 
-def mapping_view(state: "SLAMState", frames: "FrameCache", keyframe_id: int) -> MappingView:
+def mapping_view(state: "SLAMState", frames: "FrameCache", keyframe_id: int,
+                 images: KeyframeImages | None = None) -> MappingView:
     """Keyframe ``keyframe_id`` as mapping sees it: its image, its current pose and its exposure (keyframe 0's
-    pose stays fixed: it fixes the gauge)."""
+    pose stays fixed: it fixes the gauge). ``images``: the mapper's keyframe cache (None reads ``frames``)."""
     record = state.keyframe_record(keyframe_id)
-    frame = frames[record.index]
+    if images is None:
+        frame, masks = frames[record.index], None
+    else:
+        frame, masks = images.get(frames, record.index)
     return MappingView(keyframe_id, frame.color, frame.depth, record.T_wc, record.exposure.to(frame.color.device),
-                       frame.intrinsics, optimize_pose=keyframe_id != 0)
+                       frame.intrinsics, optimize_pose=keyframe_id != 0, masks=masks)
 
 
 def map_keyframe(mapper: Mapper, state: "SLAMState", frames: "FrameCache", record: "FrameRecord",
@@ -277,7 +323,7 @@ def map_keyframe(mapper: Mapper, state: "SLAMState", frames: "FrameCache", recor
     """Map the new keyframe ``record`` over the keyframes ``keyframe_ids`` (the window, newest first, then the
     random past ones; :func:`mipslam.keyframes.insert_keyframe`), and take the refined poses (projected onto
     SE(3)) into ``state``. ``mapping.first_frame_iterations`` steps on the first keyframe, ``iterations`` after."""
-    views = [mapping_view(state, frames, kf) for kf in keyframe_ids]
+    views = [mapping_view(state, frames, kf, mapper.keyframe_images) for kf in keyframe_ids]
     cfg = mapper.config
     iterations = cfg.first_frame_iterations if record.keyframe_id == 0 else cfg.iterations
     result = mapper.map_keyframe(state.gaussian_map, state.optimizer, views, iterations=iterations,
@@ -298,7 +344,8 @@ def refine_after_correction(mapper: Mapper, state: "SLAMState", frames: "FrameCa
     """
     if iterations == 0 or len(state.gaussian_map) == 0:
         return 0
-    views = [replace(mapping_view(state, frames, k), optimize_pose=False) for k in keyframe_ids]
+    views = [replace(mapping_view(state, frames, k, mapper.keyframe_images), optimize_pose=False)
+             for k in keyframe_ids]
     mapper.optimize(state.gaussian_map, state.optimizer, views, iterations, state.generator)
     return iterations
 
@@ -312,7 +359,8 @@ def refine_map(mapper: Mapper, state: "SLAMState", frames: "FrameCache") -> int:
         return 0
     passes = -(-iterations // count)
     order = torch.cat([torch.randperm(count, generator=state.generator) for _ in range(passes)])[:iterations]
-    views = (mapping_view(state, frames, int(k)) for k in order)  # Mapper.refine never moves a pose
+    # Mapper.refine never moves a pose
+    views = (mapping_view(state, frames, int(k), mapper.keyframe_images) for k in order)
     losses = mapper.refine(state.gaussian_map, state.optimizer, views)
     if losses:
         n = min(count, len(losses))

@@ -112,7 +112,7 @@ class Tracker:
                 iterations = per_coarse
             if iterations <= 0:
                 continue
-            target_masks = rgbd_masks(color, depth,
+            target_masks = rgbd_masks(color, depth, max_depth=cfg.max_depth,
                                       extra_color_mask=image_gradient_mask(color, cfg.gradient_mask_percentile))
             levels.append(_Level(intrinsics, color, depth, target_masks, iterations))
         return levels
@@ -122,7 +122,10 @@ class Tracker:
                           pose_only=True)
         masks = level.target_masks.where_opaque(out.alpha, self.config.opacity_threshold)
         color = out.color if exposure is None else apply_affine_exposure(out.color, exposure[0], exposure[1])
-        return rgbd_l1_loss(color, out.depth, level.color, level.depth, alpha_color=self.config.alpha_color, masks=masks)
+        return rgbd_l1_loss(color, out.depth, level.color, level.depth, alpha_color=self.config.alpha_color,
+                            masks=masks, depth_alpha=out.alpha if self.config.depth_normalise else None,
+                            depth_alpha_floor=self.config.depth_alpha_floor,
+                            depth_outlier_ratio=self.config.depth_outlier_ratio)
 
     def track(
         self,

@@ -9,9 +9,12 @@ import torch
 from mipslam.losses.photometric import (
     AffineExposure,
     apply_affine_exposure,
+    coverage_loss,
     image_gradient_magnitude,
     image_gradient_mask,
+    depth_inlier_mask,
     masked_l1,
+    normalised_depth,
     rgbd_l1_loss,
     rgbd_masks,
 )
@@ -225,3 +228,97 @@ def test_target_masks_then_the_opacity_test_equal_the_masks_built_with_the_opaci
     assert not in_two.color[2, 3] and not in_two.depth[5, 0]
     with pytest.raises(ValueError, match="opacity"):
         rgbd_masks(color, depth).where_opaque(alpha[:-1], 0.5)
+
+
+def test_normalised_depth_recovers_the_surface_depth_and_keeps_opacity_out_of_its_gradient():
+    depth_surface = torch.full((4, 5), 2.0)
+    alpha = torch.tensor([0.3, 0.5, 0.8, 1.0, 0.0]).expand(4, 5).clone().requires_grad_(True)
+    rendered = (alpha * depth_surface).detach().requires_grad_(True)  # D = A z for a surface at z = 2 m
+    normalised = normalised_depth(rendered, alpha, floor=0.5)
+    # Above the floor the surface depth comes back whatever the opacity; below it D / floor (a thin map).
+    assert torch.allclose(normalised[:, 1:4], torch.full((4, 3), 2.0))
+    assert torch.allclose(normalised[:, 0], torch.full((4,), 0.3 * 2.0 / 0.5))
+    assert torch.allclose(normalised[:, 4], torch.zeros(4))
+    normalised.sum().backward()
+    assert alpha.grad is None or not alpha.grad.any()  # stop-gradient: opacity is the colour term's
+    assert torch.allclose(rendered.grad[:, 2], torch.full((4,), 1 / 0.8))
+    with pytest.raises(ValueError):
+        normalised_depth(rendered, alpha, floor=0.0)
+
+
+def test_max_depth_leaves_far_observations_out_of_the_depth_term():
+    color_gt, depth_gt = _frame()  # depths in [1, 2) m
+    masks = rgbd_masks(color_gt, depth_gt, max_depth=1.5)
+    assert torch.equal(masks.depth, depth_gt <= 1.5)
+    assert masks.color.all()  # colour does not need valid depth unless asked
+    assert torch.equal(rgbd_masks(color_gt, depth_gt).depth, depth_gt > 0)
+
+
+def _translucent_plane(opacity: float, z: float = 1.0, half_width: float = 0.8, spacing: float = 0.02):
+    """A grid of flat Gaussians on the plane ``z`` (world = camera frame at the identity pose), each of opacity
+    ``opacity``: the rendered opacity stays below 1 while every Gaussian sits exactly at ``z`` metres."""
+    from mipslam.gaussians import ActivatedGaussians
+
+    ticks = torch.arange(-half_width, half_width + 1e-6, spacing)
+    x, y = torch.meshgrid(ticks, ticks, indexing="xy")
+    means = torch.stack([x.reshape(-1), y.reshape(-1), torch.full((x.numel(),), z)], dim=-1)
+    n = means.shape[0]
+    quats = torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 4).clone()
+    scales = torch.tensor([spacing * 0.6, spacing * 0.6, 1e-4]).expand(n, 3).clone()
+    return ActivatedGaussians(means, quats, scales, torch.full((n,), opacity), torch.full((n, 3), 0.5))
+
+
+@pytest.mark.parametrize("normalise", [False, True])
+def test_a_translucent_map_pulls_the_camera_along_its_axis_only_with_the_raw_depth_term(normalise):
+    # A plane at 1 m observed at 1 m, mapped with opacity below 1 (A ~ 0.71): the raw depth D = A z reads short,
+    # and the depth term drives the camera back towards 1 / A = 1.4 m (Adam's 60 steps of 2 mm reach 12 cm);
+    # the alpha-normalised term leaves it at the truth.
+    from mipslam.geometry.se3 import se3_exp
+    from mipslam.render import rasterize
+    from mipslam.types import Intrinsics
+
+    plane = _translucent_plane(opacity=0.5)
+    intrinsics = Intrinsics(fx=40.0, fy=40.0, cx=15.5, cy=11.5, width=32, height=24)
+    K = intrinsics.matrix(torch.float32, torch.device("cpu"))
+    depth_gt = torch.ones(24, 32)
+    color_gt = torch.full((24, 32, 3), 0.5)
+    rho = torch.zeros(3, requires_grad=True)
+    optimizer = torch.optim.Adam([rho], lr=2e-3)
+    for _ in range(60):
+        T_cw = se3_exp(torch.cat([rho, torch.zeros(3)]))
+        out = rasterize(plane.means, plane.quats, plane.scales, plane.opacities, plane.colors, T_cw, K, 32, 24,
+                        mode="mip", pose_only=True)
+        loss = rgbd_l1_loss(out.color, out.depth, color_gt, depth_gt, alpha_color=0.0,
+                            depth_alpha=out.alpha if normalise else None)
+        optimizer.zero_grad()
+        loss.total.backward()
+        optimizer.step()
+    opacity = float(out.alpha.detach().mean())
+    assert 0.6 < opacity < 0.8, opacity  # the map is translucent
+    # T_cw = exp(rho): the camera sits at -rho, so a camera moved back (away from the plane) has rho_z > 0.
+    if normalise:
+        assert abs(float(rho[2])) < 3e-3, rho
+    else:
+        assert float(rho[2]) > 0.1, (rho, opacity)
+
+
+def test_depth_outliers_leave_the_depth_term():
+    color_gt, depth_gt = _frame()
+    depth = depth_gt + 0.01  # 1 cm everywhere ...
+    depth[0, :4] += 0.5  # ... and a disocclusion: 4 pixels 51 cm off
+    mask = depth_gt > 0
+    inliers = depth_inlier_mask(depth, depth_gt, mask, ratio=10.0)
+    assert int((~inliers).sum()) == 4 and not inliers[0, :4].any()
+    kept = rgbd_l1_loss(color_gt, depth, color_gt, depth_gt, alpha_color=0.0, depth_outlier_ratio=10.0)
+    assert kept.num_depth_pixels == 12 * 16 - 4
+    assert kept.depth.item() == pytest.approx(0.01, abs=1e-5)
+    assert rgbd_l1_loss(color_gt, depth, color_gt, depth_gt, alpha_color=0.0).depth.item() > 0.015
+
+
+def test_coverage_loss_is_the_missing_opacity_where_the_sensor_saw_a_surface():
+    alpha = torch.tensor([[1.0, 0.5], [0.25, 0.0]], requires_grad=True)
+    measured = torch.tensor([[True, True], [True, False]])  # no depth at the last pixel: no surface to cover
+    value = coverage_loss(alpha, measured)
+    assert value.item() == pytest.approx((0.0 + 0.5 + 0.75) / 3)
+    value.backward()
+    assert torch.allclose(alpha.grad, torch.tensor([[0.0, -1 / 3], [-1 / 3, 0.0]]))

@@ -84,3 +84,61 @@ def test_mapping_a_view_without_the_gaussians_it_cannot_draw_changes_nothing(tin
     assert ends[0][0] == pytest.approx(ends[1][0], rel=1e-5)
     for name in ("means", "log_scales", "opacity_logits", "colors_raw"):
         assert torch.allclose(getattr(ends[0][1], name), getattr(ends[1][1], name), atol=1e-5), name
+
+
+def test_keyframe_images_reads_each_keyframe_once_while_it_stays_cached(tiny_sequence):
+    from mipslam.datasets import FrameCache, make_sequence
+    from mipslam.losses.photometric import rgbd_masks
+    from mipslam.mapping import KeyframeImages
+    from tiny_runs import tiny_config
+
+    sequence = make_sequence(tiny_config(tiny_sequence).dataset)
+    reads = []
+    read = sequence.__getitem__
+
+    class Counting:  # the real reader, counting its reads
+        def __getitem__(self, index):
+            reads.append(index)
+            return read(index)
+
+    frames = FrameCache(Counting(), torch.device("cpu"), capacity=1)  # the run's cache keeps only the latest frame
+    images = KeyframeImages(capacity=2, max_depth=0.0)
+    for index in (0, 3, 0, 3, 0):
+        frame, masks = images.get(frames, index)
+    assert reads == [0, 3]
+    assert torch.equal(frame.color, sequence[0].color) and torch.equal(frame.depth, sequence[0].depth)
+    assert torch.equal(masks.depth, rgbd_masks(frame.color, frame.depth).depth)
+    images.get(frames, 5)  # evicts keyframe 3, the least recently used
+    images.get(frames, 0)
+    images.get(frames, 3)
+    assert reads == [0, 3, 5, 3]
+    uncached = KeyframeImages(capacity=0)
+    for index in (4, 2, 4):
+        uncached.get(frames, index)
+    assert reads[-3:] == [4, 2, 4]
+
+
+@pytest.mark.parametrize("normalise", [False, True])
+def test_a_translucent_map_keeps_its_depth_only_with_the_normalised_depth_term(tiny_sequence, normalise):
+    # Frame 0's map made translucent (opacity 0.5, held there): the raw depth term D = sum T a z can only reach
+    # the measured depth by moving the Gaussians outwards; the alpha-normalised term leaves them on the surface.
+    from mipslam.rendering import render_view
+
+    config, sequence, gmap, _, _ = map_of_first_frame(tiny_sequence, 40)
+    frame, T_wc = sequence[0], sequence.gt_T_wc[0]
+    with torch.no_grad():
+        gmap.opacity_logits.fill_(0.0)
+    mapping = replace(config.mapping, alpha_color=0.0, isotropy_weight=0.0, lambda_freq=0.0, lr_opacities=0.0,
+                      lr_scales=0.0, lr_means=2e-3, depth_normalise=normalise, opacity_weight=0.0)
+    optimizer = GaussianOptimizer.from_config(gmap, mapping)
+    view = MappingView(0, frame.color, frame.depth, T_wc, torch.zeros(2), frame.intrinsics, optimize_pose=False)
+    Mapper(mapping, config.render).optimize(gmap, optimizer, [view], 40, torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        out = render_view(gmap.activated(), se3_inverse(T_wc).float(), frame.intrinsics, config.render,
+                          normalized_depth=True)
+        used = (out.alpha > 0.5) & (frame.depth > 0)
+        bias = float((out.depth_normalized[used] / frame.depth[used] - 1).median())
+    if normalise:
+        assert abs(bias) < 0.005, bias
+    else:
+        assert bias > 0.02, bias  # Adam's 40 steps of 2 mm: on the way to 1 / A - 1

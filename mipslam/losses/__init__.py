@@ -13,6 +13,7 @@ from mipslam.losses.photometric import (
     image_gradient_magnitude,
     image_gradient_mask,
     masked_l1,
+    normalised_depth,
     rgbd_l1_loss,
     rgbd_masks,
 )
@@ -30,6 +31,7 @@ __all__ = [
     "image_to_patches",
     "isotropy_loss",
     "masked_l1",
+    "normalised_depth",
     "rgbd_l1_loss",
     "rgbd_masks",
     "scale_cap_loss",

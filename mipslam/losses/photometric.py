@@ -11,6 +11,20 @@
   - colour mask ``M_rgb``: the same opacity condition, the observed colour is finite, the image-gradient mask
     (pixels whose target gradient magnitude is above a percentile, see :func:`image_gradient_mask`), and, where
     asked, valid observed depth too (SplaTAM-style).
+* Alpha-normalised depth (optional, ``depth_alpha``): the renderer's depth is ``D = sum_i T_i a_i z_i``, which
+  equals ``A * z`` for a surface at ``z`` rendered with accumulated opacity ``A = sum_i T_i a_i``. Where
+  ``A < 1`` the raw term ``|D - D_gt|`` is minimised by Gaussians at ``D_gt / A`` (too far by ``1 / A - 1``) or
+  by a camera that moved towards the surface. With ``depth_alpha`` the term compares
+  ``D / stopgrad(max(A, floor))`` instead: unbiased wherever ``A >= floor``; below the floor (a thin map) it
+  keeps the raw term's push towards more opacity. The stop-gradient leaves opacity to the colour term, so
+  the depth term cannot lower ``A`` to move the normalised depth.
+* Depth outliers (optional, ``depth_outlier_ratio``): pixels whose depth residual exceeds that many times the
+  median residual of the depth mask leave the depth term (SplaTAM's rule). Those are disocclusions and
+  depth edges the map does not hold from this view; their residuals are metres where the rest are
+  millimetres, and since they grow as the camera moves away from the views that built the map, an L1 term
+  that keeps them pulls the pose back towards those views.
+* Depth range (optional, ``max_depth`` of :func:`rgbd_masks`): observed depth beyond it is ignored in the depth
+  term (the sensor's error grows with ``z^2``; far readings are the least reliable).
 * Exposure: ``exp(a) * I + b`` per frame (gain ``a`` in log space so the gain stays positive), see
   :func:`apply_affine_exposure` and :class:`AffineExposure`.
 
@@ -28,17 +42,23 @@ from torch import nn
 __all__ = [
     "AffineExposure",
     "RGBDLoss",
+    "coverage_loss",
     "RGBDMasks",
     "apply_affine_exposure",
     "image_gradient_magnitude",
     "image_gradient_mask",
+    "depth_inlier_mask",
     "masked_l1",
+    "normalised_depth",
     "rgbd_l1_loss",
     "rgbd_masks",
 ]
 
 # ITU-R BT.601 luma weights, used to reduce a colour target to one channel for the gradient mask.
 _LUMA_WEIGHTS = (0.299, 0.587, 0.114)
+# Opacity floor of the alpha-normalised depth when the caller gives none: at 0.5 a thin map's depth
+# is at most doubled, so a pixel the map barely covers cannot dominate the depth term.
+DEFAULT_DEPTH_ALPHA_FLOOR = 0.5
 
 
 @dataclass(frozen=True)
@@ -176,10 +196,13 @@ def rgbd_masks(
     gradient_percentile: float = 0.0,
     color_needs_valid_depth: bool = False,
     extra_color_mask: torch.Tensor | None = None,  # [H, W] bool
+    max_depth: float = 0.0,
 ) -> RGBDMasks:
     """Masks of the colour and depth terms (see the module docstring). No gradient flows through masks.
 
-    ``alpha=None`` (or ``opacity_threshold <= 0``) skips the opacity condition.
+    ``alpha=None`` (or ``opacity_threshold <= 0``) skips the opacity condition. ``max_depth`` (metres, > 0)
+    leaves observed depth beyond it out of the depth term (and out of "valid depth" for the colour term's
+    ``color_needs_valid_depth``); 0 keeps every depth.
     """
     if depth_gt.dim() != 2 or color_gt.shape[:2] != depth_gt.shape:
         raise ValueError(
@@ -187,6 +210,8 @@ def rgbd_masks(
         )
     with torch.no_grad():
         valid_depth = torch.isfinite(depth_gt) & (depth_gt > 0)  # [H, W]
+        if max_depth > 0:
+            valid_depth = valid_depth & (depth_gt <= max_depth)
         color_ok = torch.isfinite(color_gt).all(dim=-1) if color_gt.dim() == 3 else torch.isfinite(color_gt)
         color_mask = color_ok & image_gradient_mask(color_gt, gradient_percentile)
         if color_needs_valid_depth:
@@ -241,6 +266,51 @@ class _MaskedMeanAbs(torch.autograd.Function):
         return (grad if ctx.needs_input_grad[0] else None, -grad if ctx.needs_input_grad[1] else None, None, None)
 
 
+def normalised_depth(
+    depth: torch.Tensor,  # [H, W] rendered depth sum_i T_i a_i z_i, metres
+    alpha: torch.Tensor,  # [H, W] rendered opacity sum_i T_i a_i in [0, 1]
+    floor: float = DEFAULT_DEPTH_ALPHA_FLOOR,
+) -> torch.Tensor:  # [H, W] metres
+    """``D / stopgrad(max(A, floor))``: the opacity-weighted mean depth of the Gaussians a pixel sees.
+
+    Where ``A >= floor`` this is the depth of the surface whatever the opacity (a surface at ``z`` with
+    ``A < 1`` renders ``D = A z``); the gradient flows through ``D`` alone (scaled by ``1 / A``).
+    """
+    if depth.shape != alpha.shape:
+        raise ValueError(f"normalised_depth: depth {tuple(depth.shape)} and opacity {tuple(alpha.shape)} differ")
+    if not 0.0 < floor <= 1.0:
+        raise ValueError(f"normalised_depth: floor must be in (0, 1], got {floor}")
+    return depth / alpha.detach().clamp(min=floor)
+
+
+def depth_inlier_mask(
+    depth: torch.Tensor,  # [H, W] rendered depth, metres
+    depth_gt: torch.Tensor,  # [H, W] observed depth, metres
+    mask: torch.Tensor,  # [H, W] bool, the depth term's pixels
+    ratio: float,
+) -> torch.Tensor:  # [H, W] bool
+    """``mask`` without the pixels whose residual ``|D - D_gt|`` exceeds ``ratio`` times its median over ``mask``."""
+    if ratio <= 0:
+        raise ValueError(f"depth_inlier_mask: ratio must be positive, got {ratio}")
+    with torch.no_grad():
+        residual = torch.where(mask, (depth.detach() - depth_gt).abs(), torch.zeros_like(depth_gt))
+        if not bool(mask.any()):
+            return mask
+        median = residual[mask].median()
+        return mask & (residual <= ratio * median)
+
+
+def coverage_loss(
+    alpha: torch.Tensor,  # [H, W] rendered opacity in [0, 1]
+    mask: torch.Tensor,  # [H, W] bool, pixels where the sensor measured a surface
+) -> torch.Tensor:  # [] scalar
+    """``mean(1 - A)`` over ``mask``: where the sensor saw a surface the map should be opaque (0 for an empty mask).
+
+    Pairs with the alpha-normalised depth term, which places the surface but leaves opacity alone."""
+    value, _ = masked_l1(alpha, torch.ones_like(alpha), mask)
+    return value
+
+
 def rgbd_l1_loss(
     color: torch.Tensor,  # [H, W, C] rendered colour in [0, 1]
     depth: torch.Tensor,  # [H, W] rendered depth, metres
@@ -254,12 +324,18 @@ def rgbd_l1_loss(
     gradient_percentile: float = 0.0,
     color_needs_valid_depth: bool = False,
     exposure: nn.Module | None = None,
+    depth_alpha: torch.Tensor | None = None,  # [H, W] rendered opacity: compare the alpha-normalised depth
+    depth_alpha_floor: float = DEFAULT_DEPTH_ALPHA_FLOOR,
+    depth_outlier_ratio: float = 0.0,
 ) -> RGBDLoss:
     """The tracking/mapping loss of DESIGN.md (formula in the module docstring).
 
     Pass precomputed ``masks`` (e.g. the gradient mask once per frame, see :func:`rgbd_masks`), or let the
     function build them from ``alpha``/``opacity_threshold``/``gradient_percentile``. ``exposure`` (e.g.
-    :class:`AffineExposure`) is applied to the rendered colour before the comparison.
+    :class:`AffineExposure`) is applied to the rendered colour before the comparison. ``depth_alpha`` (the
+    render's opacity [H, W]) makes the depth term compare :func:`normalised_depth` ``D / stopgrad(max(A,
+    depth_alpha_floor))`` with the observed depth (module docstring); None compares the raw ``D``.
+    ``depth_outlier_ratio`` > 0 drops depth pixels whose residual exceeds that many times the median residual.
     """
     if not 0.0 <= alpha_color <= 1.0:
         raise ValueError(f"alpha_color must be in [0, 1], got {alpha_color}")
@@ -279,7 +355,12 @@ def rgbd_l1_loss(
         )
     corrected = exposure(color) if exposure is not None else color
     color_term, num_color = masked_l1(corrected, color_gt, masks.color)
-    depth_term, num_depth = masked_l1(depth, depth_gt, masks.depth)
+    if depth_alpha is not None:
+        depth = normalised_depth(depth, depth_alpha, depth_alpha_floor)
+    depth_mask = masks.depth
+    if depth_outlier_ratio > 0:
+        depth_mask = depth_inlier_mask(depth, depth_gt, depth_mask, depth_outlier_ratio)
+    depth_term, num_depth = masked_l1(depth, depth_gt, depth_mask)
     total = alpha_color * color_term + (1.0 - alpha_color) * depth_term
     return RGBDLoss(
         total=total, color=color_term, depth=depth_term, num_color_pixels=num_color, num_depth_pixels=num_depth
