@@ -176,6 +176,40 @@ class TrackingConfig:
 
 
 @dataclass(frozen=True)
+class FrontendConfig:
+    """Wide-basin start of tracking (mipslam/frontend.py): ORB features with depth matched to the previous
+    frame, pose by PnP RANSAC; rendering then refines it. A failed match falls back to the motion model,
+    and a frame whose tracking fails is relocalised against the newest keyframes the same way."""
+
+    method: Literal["none", "orb_pnp"] = "orb_pnp"  # none: tracking starts from the motion model alone
+    num_features: int = 1000  # ORB keypoints per frame
+    pyramid_levels: int = 4  # ORB scale levels (factor 1.2 each)
+    fast_threshold: int = 12  # FAST corner threshold, grey levels of 255
+    ratio_test: float = 0.85  # Lowe's ratio test on the two nearest descriptors
+    # matching first searches around the motion model's projection, this fraction of the image size wide
+    # (repeated texture then cannot match the wrong copy); 0 matches over the whole image only
+    guided_radius: float = 0.1
+    max_hamming: int = 64  # descriptor distance above which a match is dropped (of 256 bits)
+    ransac_reprojection_px: float = 3.0  # PnP RANSAC inlier threshold at the tracked image's resolution
+    ransac_iterations: int = 200
+    min_inliers: int = 25  # fewer agreeing matches: the features say nothing (fall back / lost)
+    min_inlier_ratio: float = 0.25  # inliers / matches below this: not trusted
+    relocalise_keyframes: int = 8  # a frame whose tracking failed is matched to this many newest keyframes
+
+    def __post_init__(self):
+        _check(self.num_features >= 50, "frontend.num_features", "must be >= 50")
+        _check(1 <= self.pyramid_levels <= 8, "frontend.pyramid_levels", "must be in [1, 8]")
+        _check(0 < self.ratio_test <= 1, "frontend.ratio_test", "must be in (0, 1]")
+        _check(0 <= self.guided_radius <= 2, "frontend.guided_radius", "must be in [0, 2] (0 = off)")
+        _check(0 < self.max_hamming <= 256, "frontend.max_hamming", "must be in (0, 256]")
+        _check(self.ransac_reprojection_px > 0, "frontend.ransac_reprojection_px", "must be positive (pixels)")
+        _check(self.ransac_iterations >= 1, "frontend.ransac_iterations", "must be >= 1")
+        _check(self.min_inliers >= 6, "frontend.min_inliers", "must be >= 6 (PnP needs at least 6 points)")
+        _check(0 <= self.min_inlier_ratio <= 1, "frontend.min_inlier_ratio", "must be in [0, 1]")
+        _check(self.relocalise_keyframes >= 0, "frontend.relocalise_keyframes", "must be >= 0 (0 = off)")
+
+
+@dataclass(frozen=True)
 class KeyframeConfig:
     covisibility_threshold: float = 0.9  # new keyframe when overlap with the last drops below
     translation_ratio: float = 0.1  # ... or translation > ratio * median scene depth
@@ -328,6 +362,7 @@ class Config:
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    frontend: FrontendConfig = field(default_factory=FrontendConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)

@@ -27,6 +27,7 @@ from mipslam.config import Config, config_to_dict, config_to_yaml
 from mipslam.datasets import RGBDSequence, make_sequence
 from mipslam.errors import CheckpointError, ConfigError, DatasetError, MipslamError
 from mipslam.evaluation.image_metrics import psnr
+from mipslam.frontend import Frontend
 from mipslam.geometry import se3_inverse
 from mipslam.io.run_folder import RunFolder, write_json_atomic, write_text_atomic
 from mipslam.keyframes import covisibility, decide_keyframe, select_random_past, update_window_from_config
@@ -114,6 +115,7 @@ class Stages:
     frames: FrameCache
     loop: LoopCloser | None = None
     hooks: PipelineHooks = field(default_factory=PipelineHooks)
+    frontend: Frontend | None = None
 
     @classmethod
     def build(cls, config: Config, sequence: RGBDSequence, device: torch.device,
@@ -122,7 +124,7 @@ class Stages:
         capacity = config.keyframes.window_size + config.keyframes.random_past + 2
         loop = LoopCloser(config.loop, verification_hook=hooks.loop_verification) if config.loop.enabled else None
         return cls(config, Tracker(config.tracking, config.render), Mapper(config.mapping, config.render),
-                   FrameCache(sequence, device, capacity), loop, hooks)
+                   FrameCache(sequence, device, capacity), loop, hooks, Frontend(config.frontend))
 
 
 @contextmanager
@@ -168,12 +170,40 @@ def track(stages: Stages, state: SLAMState, frame: Frame, T_wc_first: torch.Tens
         return initial_result(T_wc_first)
     prediction = constant_velocity_prediction(previous[-1].T_wc, previous[-1].T_wc_tracked,
                                               previous[-2].T_wc_tracked if len(previous) == 2 else None)
+    start = frontend_start(stages, state, frame, prediction)
     if len(state.gaussian_map) == 0:
-        return initial_result(prediction)
+        return initial_result(start.T_wc)
     detached = state.gaussian_map.activated().detached()
-    result = stages.tracker.track(detached, frame, prediction, state.running_loss)
+    result = stages.tracker.track(detached, frame, start.T_wc, state.running_loss)
+    result = relocalise_keyframes(stages, state, frame, detached, result)
     result = relocalise(stages, state, frame, detached, result)
     return replace(result, T_wc=nearest_rigid(result.T_wc))
+
+
+def frontend_start(stages: Stages, state: SLAMState, frame: Frame, prediction: torch.Tensor):
+    """Tracking's start: the feature front-end against the newest tracked frame, or the motion model."""
+    reference = next((f for f in reversed(state.frames) if f.tracked), None)
+    if stages.frontend is None or reference is None:
+        return Frontend.motion_model(prediction)
+    return stages.frontend.start(frame, stages.frames[reference.index], reference.T_wc, prediction)
+
+
+def relocalise_keyframes(stages: Stages, state: SLAMState, frame: Frame, gaussians,
+                         result: TrackingResult) -> TrackingResult:
+    """A frame whose tracking failed is matched to the newest keyframes (features + PnP) and tracked again from
+    the best match; it stays failed (not mapped) when no keyframe agrees or the retry fails too."""
+    if result.ok or stages.frontend is None or not state.keyframe_frames:
+        return result
+    newest = [state.frames[p] for p in reversed(state.keyframe_frames)]
+    start = stages.frontend.relocalise(frame, [(stages.frames[r.index], r.T_wc) for r in newest])
+    if start is None:
+        return result
+    retry = stages.tracker.track(gaussians, frame, start.T_wc, state.running_loss)
+    if retry.ok:
+        log.info("frame %d: relocalised against frame %d (%d feature inliers; tracking had failed: %s)",
+                 frame.index, start.reference_index, start.inliers, result.status)
+        return retry
+    return result
 
 
 # Dense RGB-D odometry (Open3D's coarse-to-fine hybrid term, as loop verification uses) that
