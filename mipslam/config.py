@@ -147,6 +147,9 @@ class TrackingConfig:
     convergence_threshold: float = 1e-5
     alpha_color: float = 0.5  # weight of the photometric term against depth
     coarse_to_fine: tuple[float, ...] = ()  # e.g. (0.5,) tracks at half resolution first
+    # Scale of tracking's finest level against the frame (coarse_to_fine scales multiply it): with a
+    # feature front-end's start a few steps at low resolution refine the pose (docs/tracking.md).
+    resolution_scale: float = 1.0
     use_exposure: bool = False
     opacity_threshold: float = 0.95  # pixels whose rendered opacity is below are ignored
     gradient_mask_percentile: float = 0.0  # keep colour pixels above this image-gradient percentile (0-100)
@@ -168,6 +171,7 @@ class TrackingConfig:
         _check(0 < self.lr_final_ratio <= 1, "tracking.lr_final_ratio", "must be in (0, 1] (1 = constant rate)")
         _check(self.rprop_max_step_ratio >= 1, "tracking.rprop_max_step_ratio", "must be >= 1")
         _check(all(0 < s <= 1 for s in self.coarse_to_fine), "tracking.coarse_to_fine", "scales must be in (0, 1]")
+        _check(0 < self.resolution_scale <= 1, "tracking.resolution_scale", "must be in (0, 1]")
         _check(0 <= self.min_valid_fraction <= 1, "tracking.min_valid_fraction", "must be in [0, 1]")
         _check(0 <= self.gradient_mask_percentile < 100, "tracking.gradient_mask_percentile", "must be in [0, 100)")
         _check(self.failure_loss_ratio > 1, "tracking.failure_loss_ratio", "must be > 1")
@@ -323,6 +327,10 @@ class LoopConfig:
     # to the keyframes, and a revisited room optimises every other keyframe: on a 2000-frame run the
     # optimiser's time per frame grew 7x over 8 laps (docs/robustness.md, failure 12).
     pgo_window_keyframes: int = 200
+    # An applied correction is undone (and its new loop edges leave the graph) when the map, moved with it,
+    # renders the loop's keyframes more than this many dB (mean PSNR) worse than before: a loop edge that
+    # tears the map apart contradicts what tracking and mapping measured. Negative: no check.
+    max_correction_psnr_drop_db: float = 1.0
 
     def __post_init__(self):
         _check(self.pgo_window_keyframes >= 0, "loop.pgo_window_keyframes", "must be >= 0 (0 = the whole graph)")

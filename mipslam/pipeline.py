@@ -340,8 +340,18 @@ def correct_map(stages: Stages, state: SLAMState, step: LoopStep) -> dict:
     start = time.perf_counter()
     before = [_keyframe_psnr(stages, state, k, state.keyframe_record(k).T_wc) for k in check]
     poses_only = [_keyframe_psnr(stages, state, k, step.corrected_T_wc[k]) for k in check]
+    T_wc_old = state.keyframe_poses()
     moved = state.correct_keyframe_poses(step.corrected_T_wc)
     moved_only = [_keyframe_psnr(stages, state, k, state.keyframe_record(k).T_wc) for k in check]
+    if not stages.loop.keeps_correction(before, moved_only):
+        state.correct_keyframe_poses(T_wc_old)
+        state.loop = stages.loop.without_loop_edges(state.loop, step.optimisation.new_loop_edges)
+        log.info("loop correction at keyframe %d undone: the moved map renders keyframes %s at %.2f dB, %.2f dB before",
+                 step.optimisation.query_keyframe, check, sum(moved_only) / len(moved_only), sum(before) / len(before))
+        return {"gaussians_moved": 0, "psnr_keyframes": check, "psnr_before_db": before,
+                "psnr_poses_only_db": poses_only, "psnr_moved_db": moved_only, "refine_iterations": 0,
+                "psnr_after_db": before, "applied": False, "undone": True,
+                "map_correction_s": time.perf_counter() - start}
     refine_iterations = refine_after_correction(stages, state, check)
     after = [_keyframe_psnr(stages, state, k, state.keyframe_record(k).T_wc) for k in check]
     log.info("loop correction at keyframe %d: moved %d Gaussians; map PSNR at keyframes %s %.2f -> %.2f dB "

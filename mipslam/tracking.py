@@ -38,9 +38,9 @@ class TrackingResult:
 
     T_wc:           [4, 4] float64 camera-to-world (the motion-model pose when tracking failed)
     exposure:       [2] float32 (log_gain, bias) of the affine exposure model (zeros when off)
-    loss:           final loss at full resolution (NaN when it could not be computed)
+    loss:           final loss at the finest level (tracking.resolution_scale; NaN when it could not be computed)
     iterations:     optimiser steps taken over all levels
-    valid_fraction: fraction of pixels in the depth term at full resolution
+    valid_fraction: fraction of pixels in the depth term at the finest level
     ok:             False when tracking failed (the frame is flagged and not mapped)
     status:         "ok", "initial", "non_finite_loss", "too_few_valid_pixels" or "loss_jump"
     """
@@ -87,13 +87,19 @@ class Tracker:
 
     def _levels(self, frame: Frame) -> list[_Level]:
         cfg = self.config
-        scales = [s for s in cfg.coarse_to_fine if s < 1.0] + [1.0]
+        finest = cfg.resolution_scale
+        scales = [s * finest for s in cfg.coarse_to_fine if s < 1.0] + [finest]
         coarse_total = int(round(cfg.iterations * _COARSE_SHARE)) if len(scales) > 1 else 0
         per_coarse = coarse_total // max(1, len(scales) - 1)
         levels = []
         for scale in scales:
             if scale == 1.0:
                 color, depth, intrinsics = frame.color, frame.depth, frame.intrinsics
+                iterations = cfg.iterations - per_coarse * (len(scales) - 1)
+            elif scale == finest:
+                intrinsics = frame.intrinsics.scaled(scale)
+                color = resize_area(frame.color, scale)
+                depth = resize_area(frame.depth, scale, valid=frame.depth > 0)
                 iterations = cfg.iterations - per_coarse * (len(scales) - 1)
             else:
                 intrinsics = frame.intrinsics.scaled(scale)
@@ -140,7 +146,7 @@ class Tracker:
         # The lowest full-resolution loss seen, its depth-pixel count, and the pose (and exposure) it was seen at.
         best_loss, best_depth_pixels, best = math.inf, 0, (torch.zeros(6, dtype=dtype, device=device), None)
         levels = self._levels(frame)
-        full = levels[-1]  # scale 1 is always last and gets at least half of the iterations
+        full = levels[-1]  # the finest level (tracking.resolution_scale) is last and gets at least half the iterations
         base_lrs = [group["lr"] for group in optimizer.param_groups]
         # Adam's rate decays geometrically within each level: lr_i = lr * ratio^(i / (n - 1)). Rprop reads lr
         # only to size its first steps and adapts them itself, so its rate is left alone.
@@ -171,7 +177,7 @@ class Tracker:
         # The best pose's loss and valid-pixel count (seen when it was rendered) decide success.
         xi_best, exposure_best = best
         T_cw_best = se3_exp(xi_best.to(torch.float64)) @ T_cw_init
-        valid_fraction = best_depth_pixels / max(1, frame.depth.numel())
+        valid_fraction = best_depth_pixels / max(1, full.depth.numel())
         final_loss = best_loss
         if not math.isfinite(final_loss):
             return self._failed(T_wc_init, iterations, "non_finite_loss", math.nan, valid_fraction)

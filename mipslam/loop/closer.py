@@ -324,6 +324,26 @@ class LoopCloser:
             return LoopStep(LoopState(graph, descriptors), tuple(reports), None, None, 0.0)
         return self._optimise(graph, descriptors, keyframe, new_edges, tuple(reports))
 
+    def keeps_correction(self, psnr_before_db: list[float], psnr_moved_db: list[float]) -> bool:
+        """Whether an applied correction stands: the map moved with it renders the loop's keyframes (mean PSNR,
+        dB) at most ``max_correction_psnr_drop_db`` worse than before it. A right loop closure brings the old
+        and the new parts of the map together; a wrong one tears the map apart where the keyframes look."""
+        limit = self.config.max_correction_psnr_drop_db
+        if limit < 0 or not psnr_before_db or not psnr_moved_db:
+            return True
+        before = sum(psnr_before_db) / len(psnr_before_db)
+        moved = sum(psnr_moved_db) / len(psnr_moved_db)
+        return not moved < before - limit
+
+    @staticmethod
+    def without_loop_edges(state: LoopState, loop_edges: list[list[int]]) -> LoopState:
+        """``state`` with the loop edges between the listed keyframe pairs ((i, j) each) removed from the graph."""
+        pairs = {tuple(int(n) for n in pair) for pair in loop_edges}
+        graph = state.graph
+        drop = [e for e in range(graph.num_edges)
+                if bool(graph.edge_is_loop[e]) and tuple(graph.edge_nodes[e].tolist()) in pairs]
+        return replace(state, graph=graph.without_edges(drop))
+
     def _within_expected_drift(self, result: RegistrationResult, chain_T_wc: torch.Tensor) -> RegistrationResult:
         """``result`` rejected when its correction of the estimate exceeds ``max_drift_sigmas`` standard deviations
         of the odometry drift over the keyframe chain ``chain_T_wc`` [k - i + 1, 4, 4] (candidate to query)."""
