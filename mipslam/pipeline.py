@@ -174,7 +174,10 @@ def track(stages: Stages, state: SLAMState, frame: Frame, T_wc_first: torch.Tens
     if len(state.gaussian_map) == 0:
         return initial_result(start.T_wc)
     detached = state.gaussian_map.activated().detached()
-    result = stages.tracker.track(detached, frame, start.T_wc, state.running_loss)
+    T_wc_start = start.T_wc
+    if start.source == "features":  # the render loss judges between the features' pose and the motion model's
+        T_wc_start = (start.T_wc, prediction)[stages.tracker.best_start(detached, frame, [start.T_wc, prediction])]
+    result = stages.tracker.track(detached, frame, T_wc_start, state.running_loss)
     result = relocalise_keyframes(stages, state, frame, detached, result)
     result = relocalise(stages, state, frame, detached, result)
     return replace(result, T_wc=nearest_rigid(result.T_wc))
@@ -194,7 +197,7 @@ def relocalise_keyframes(stages: Stages, state: SLAMState, frame: Frame, gaussia
     the best match; it stays failed (not mapped) when no keyframe agrees or the retry fails too."""
     if result.ok or stages.frontend is None or not state.keyframe_frames:
         return result
-    newest = [state.frames[p] for p in reversed(state.keyframe_frames)]
+    newest = [state.frames[p] for p in reversed(state.keyframe_frames)][: stages.config.frontend.relocalise_keyframes]
     start = stages.frontend.relocalise(frame, [(stages.frames[r.index], r.T_wc) for r in newest])
     if start is None:
         return result

@@ -189,6 +189,34 @@ class Tracker:
         exposure_out = torch.zeros(2) if exposure_best is None else exposure_best.detach().float().cpu()
         return TrackingResult(T_wc, exposure_out, final_loss, iterations, valid_fraction, True, "ok")
 
+    @torch.no_grad()
+    def best_start(
+        self,
+        gaussians: ActivatedGaussians,  # the frozen map (detached)
+        frame: Frame,
+        candidates: list[torch.Tensor],  # [4, 4] float64 start poses (e.g. the feature front-end's, the motion model's)
+    ) -> int:
+        """Index of the candidate start whose render at tracking's finest level explains the frame best (lowest
+        loss, no exposure; a candidate seeing under ``min_valid_fraction`` of the pixels through the map loses).
+
+        One forward render per candidate: the features' pose and the motion model's are judged by the same
+        objective that refinement then descends, so a consensus of wrong matches (repeated texture) cannot
+        replace a better motion-model start.
+        """
+        if len(candidates) < 2:
+            return 0
+        level = self._levels(frame)[-1]
+        device, dtype = gaussians.means.device, gaussians.means.dtype
+        losses = []
+        for T_wc in candidates:
+            T_cw = se3_inverse(T_wc.to(torch.float64)).to(device=device, dtype=dtype)
+            subset = frustum_subset(gaussians, T_cw, frame.intrinsics, self.render_config)
+            loss = self._loss(subset, T_cw, level, None)
+            valid = loss.num_depth_pixels / max(1, level.depth.numel())
+            value = float(loss.total)
+            losses.append(value if math.isfinite(value) and valid >= self.config.min_valid_fraction else math.inf)
+        return min(range(len(candidates)), key=lambda i: (losses[i], i))
+
     @staticmethod
     def _failed(T_wc_init: torch.Tensor, iterations: int, status: str, loss: float, valid_fraction: float) -> TrackingResult:
         return TrackingResult(T_wc_init.detach().to(torch.float64).cpu().clone(), torch.zeros(2), loss, iterations,

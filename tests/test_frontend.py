@@ -2,13 +2,22 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 import torch
 
-from mipslam.config import FrontendConfig
+import data_synth
+from mipslam.config import FrontendConfig, load_config
+from mipslam.datasets import make_sequence
+from mipslam.gaussians import GaussianMap, GaussianOptimizer
+from mipslam.io.tum import read_tum_trajectory
+from mipslam.mapping import Mapper, MappingView
+from mipslam.pipeline import run_slam
+from mipslam.tracking import Tracker
 from mipslam.frontend import FeatureOptions, Frontend, estimate_relative_pose, extract_features, match_features
 from mipslam.geometry.se3 import rotation_angle, se3_exp
 from mipslam.types import Frame, Intrinsics
@@ -160,3 +169,52 @@ def test_matching_is_mutual_and_ratio_tested():
     allowed = np.ones((3, 50), bool)
     allowed[1, 7] = False  # the guided search does not let query 1 reach its twin
     assert [1, 7] not in match_features(query, train, ratio=0.85, max_hamming=64, allowed=allowed).tolist()
+
+
+# ----------------------------------------------------------------------------- with the tracker and the pipeline
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="module")
+def small_sequence(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("synth") / "seq"
+    data_synth.generate(out, layout="replica", trajectory="loop", width=64, height=48, frames=6, seed=0, supersample=1)
+    return out
+
+
+def _config(sequence: Path, *extra: str):
+    return load_config(REPO / "configs" / "synthetic.yaml",
+                       overrides=[f"dataset.path={sequence}", "mapping.first_frame_iterations=30", "mapping.iterations=8",
+                                  "tracking.iterations=10", "keyframes.window_size=3", "run.threads=1", *extra])
+
+
+def test_best_start_prefers_the_pose_the_map_explains(small_sequence):
+    config = _config(small_sequence)
+    sequence = make_sequence(config.dataset)
+    frame, T_wc = sequence[0], sequence.gt_T_wc[0]
+    gmap = GaussianMap.empty()
+    optimizer = GaussianOptimizer.from_config(gmap, config.mapping)
+    mapper = Mapper(config.mapping, config.render)
+    view = MappingView(0, frame.color, frame.depth, T_wc, torch.zeros(2), frame.intrinsics, optimize_pose=False)
+    mapper.densify(gmap, optimizer, view, frame_index=0)
+    mapper.optimize(gmap, optimizer, [view], 30, torch.Generator().manual_seed(0))
+    gaussians = gmap.activated().detached()
+    wrong = T_wc @ se3_exp(torch.tensor([0.04, 0.0, 0.0, 0.0, 0.05, 0.0], dtype=torch.float64))
+    for scale in (1.0, 0.5):  # at the full and at a reduced tracking resolution
+        tracker = Tracker(replace(config.tracking, resolution_scale=scale), config.render)
+        assert tracker.best_start(gaussians, frame, [wrong, T_wc]) == 1
+        assert tracker.best_start(gaussians, frame, [T_wc, wrong]) == 0
+    result = Tracker(replace(config.tracking, resolution_scale=0.5), config.render).track(gaussians, frame, wrong, None)
+    assert result.ok and 0 < result.valid_fraction <= 1
+
+
+@pytest.mark.parametrize("method", ["orb_pnp", "none"])
+def test_a_tiny_run_with_and_without_the_front_end(small_sequence, tmp_path, method):
+    summary = run_slam(_config(small_sequence, f"frontend.method={method}", "tracking.resolution_scale=0.5",
+                               "run.evaluate_at_end=false", "loop.enabled=false"), tmp_path / "run", evaluate=False)
+    assert summary.frames == 6 and summary.flagged == 0 and summary.keyframes >= 1
+    poses = read_tum_trajectory(tmp_path / "run" / "traj_est.txt").T_wc
+    gt = make_sequence(_config(small_sequence).dataset).gt_T_wc.numpy()
+    assert np.isfinite(poses).all()
+    assert np.abs(poses[:, :3, 3] - gt[:, :3, 3]).max() < 0.05  # metres: tracking followed the lap
