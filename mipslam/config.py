@@ -150,6 +150,8 @@ class TrackingConfig:
     # Scale of tracking's finest level against the frame (coarse_to_fine scales multiply it): with a
     # feature front-end's start a few steps at low resolution refine the pose (docs/tracking.md).
     resolution_scale: float = 1.0
+    # ... but never below this width (pixels): a small frame keeps enough pixels to pin the pose. 0 = no floor.
+    min_width: int = 0
     use_exposure: bool = False
     opacity_threshold: float = 0.95  # pixels whose rendered opacity is below are ignored
     gradient_mask_percentile: float = 0.0  # keep colour pixels above this image-gradient percentile (0-100)
@@ -172,6 +174,7 @@ class TrackingConfig:
         _check(self.rprop_max_step_ratio >= 1, "tracking.rprop_max_step_ratio", "must be >= 1")
         _check(all(0 < s <= 1 for s in self.coarse_to_fine), "tracking.coarse_to_fine", "scales must be in (0, 1]")
         _check(0 < self.resolution_scale <= 1, "tracking.resolution_scale", "must be in (0, 1]")
+        _check(self.min_width >= 0, "tracking.min_width", "must be >= 0 pixels (0 = no floor)")
         _check(0 <= self.min_valid_fraction <= 1, "tracking.min_valid_fraction", "must be in [0, 1]")
         _check(0 <= self.gradient_mask_percentile < 100, "tracking.gradient_mask_percentile", "must be in [0, 100)")
         _check(self.failure_loss_ratio > 1, "tracking.failure_loss_ratio", "must be > 1")

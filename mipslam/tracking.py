@@ -87,7 +87,7 @@ class Tracker:
 
     def _levels(self, frame: Frame) -> list[_Level]:
         cfg = self.config
-        finest = cfg.resolution_scale
+        finest = max(cfg.resolution_scale, min(1.0, cfg.min_width / frame.intrinsics.width))
         scales = [s * finest for s in cfg.coarse_to_fine if s < 1.0] + [finest]
         coarse_total = int(round(cfg.iterations * _COARSE_SHARE)) if len(scales) > 1 else 0
         per_coarse = coarse_total // max(1, len(scales) - 1)
