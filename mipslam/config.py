@@ -154,6 +154,12 @@ class TrackingConfig:
     min_width: int = 0
     use_exposure: bool = False
     opacity_threshold: float = 0.95  # pixels whose rendered opacity is below are ignored
+    # The feature front-end's start replaces the motion model's only when the map renders it with a loss lower
+    # by this fraction (Tracker.best_start).
+    start_margin: float = 0.1
+    # Depth term on the opacity-normalised depth D / A instead of D = sum T alpha z, which is short by the
+    # missing opacity 1 - A (up to 5 % at the 0.95 threshold) wherever the map is not fully opaque.
+    normalized_depth: bool = False
     gradient_mask_percentile: float = 0.0  # keep colour pixels above this image-gradient percentile (0-100)
     min_valid_fraction: float = 0.05
     failure_loss_ratio: float = 5.0  # loss above ratio * running level = failure
@@ -174,6 +180,7 @@ class TrackingConfig:
         _check(self.rprop_max_step_ratio >= 1, "tracking.rprop_max_step_ratio", "must be >= 1")
         _check(all(0 < s <= 1 for s in self.coarse_to_fine), "tracking.coarse_to_fine", "scales must be in (0, 1]")
         _check(0 < self.resolution_scale <= 1, "tracking.resolution_scale", "must be in (0, 1]")
+        _check(0 <= self.start_margin < 1, "tracking.start_margin", "must be in [0, 1)")
         _check(self.min_width >= 0, "tracking.min_width", "must be >= 0 pixels (0 = no floor)")
         _check(0 <= self.min_valid_fraction <= 1, "tracking.min_valid_fraction", "must be in [0, 1]")
         _check(0 <= self.gradient_mask_percentile < 100, "tracking.gradient_mask_percentile", "must be in [0, 100)")

@@ -175,8 +175,8 @@ def track(stages: Stages, state: SLAMState, frame: Frame, T_wc_first: torch.Tens
         return initial_result(start.T_wc)
     detached = state.gaussian_map.activated().detached()
     T_wc_start = start.T_wc
-    if start.source == "features":  # the render loss judges between the features' pose and the motion model's
-        T_wc_start = (start.T_wc, prediction)[stages.tracker.best_start(detached, frame, [start.T_wc, prediction])]
+    if start.source == "features":  # the render loss judges between the motion model's pose and the features'
+        T_wc_start = (prediction, start.T_wc)[stages.tracker.best_start(detached, frame, [prediction, start.T_wc])]
     result = stages.tracker.track(detached, frame, T_wc_start, state.running_loss)
     result = relocalise_keyframes(stages, state, frame, detached, result)
     result = relocalise(stages, state, frame, detached, result)

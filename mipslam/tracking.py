@@ -114,11 +114,13 @@ class Tracker:
         return levels
 
     def _loss(self, gaussians: ActivatedGaussians, T_cw: torch.Tensor, level: _Level, exposure: torch.Tensor | None):
+        normalized = self.config.normalized_depth
         out = render_view(gaussians, T_cw, level.intrinsics, self.render_config, mode=self.config.render_mode,
-                          pose_only=True)
+                          pose_only=True, normalized_depth=normalized)
         masks = level.target_masks.where_opaque(out.alpha, self.config.opacity_threshold)
         color = out.color if exposure is None else apply_affine_exposure(out.color, exposure[0], exposure[1])
-        return rgbd_l1_loss(color, out.depth, level.color, level.depth, alpha_color=self.config.alpha_color, masks=masks)
+        depth = out.depth_normalized if normalized else out.depth
+        return rgbd_l1_loss(color, depth, level.color, level.depth, alpha_color=self.config.alpha_color, masks=masks)
 
     def track(
         self,
@@ -194,10 +196,13 @@ class Tracker:
         self,
         gaussians: ActivatedGaussians,  # the frozen map (detached)
         frame: Frame,
-        candidates: list[torch.Tensor],  # [4, 4] float64 start poses (e.g. the feature front-end's, the motion model's)
+        candidates: list[torch.Tensor],  # [4, 4] float64 start poses, the preferred first (e.g. the motion model's)
     ) -> int:
         """Index of the candidate start whose render at tracking's finest level explains the frame best (lowest
         loss, no exposure; a candidate seeing under ``min_valid_fraction`` of the pixels through the map loses).
+        A later candidate replaces an earlier one only when its loss is lower by the fraction
+        ``tracking.start_margin``: on gentle motion the motion model's start is already in the basin, and a
+        feature pose a few millimetres off must not replace it on the noise of one render.
 
         One forward render per candidate: the features' pose and the motion model's are judged by the same
         objective that refinement then descends, so a consensus of wrong matches (repeated texture) cannot
@@ -215,7 +220,11 @@ class Tracker:
             valid = loss.num_depth_pixels / max(1, level.depth.numel())
             value = float(loss.total)
             losses.append(value if math.isfinite(value) and valid >= self.config.min_valid_fraction else math.inf)
-        return min(range(len(candidates)), key=lambda i: (losses[i], i))
+        best = 0
+        for i in range(1, len(candidates)):
+            if losses[i] < (1.0 - self.config.start_margin) * losses[best]:
+                best = i
+        return best
 
     @staticmethod
     def _failed(T_wc_init: torch.Tensor, iterations: int, status: str, loss: float, valid_fraction: float) -> TrackingResult:

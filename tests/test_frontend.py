@@ -205,6 +205,7 @@ def test_best_start_prefers_the_pose_the_map_explains(small_sequence):
         tracker = Tracker(replace(config.tracking, resolution_scale=scale), config.render)
         assert tracker.best_start(gaussians, frame, [wrong, T_wc]) == 1
         assert tracker.best_start(gaussians, frame, [T_wc, wrong]) == 0
+        assert tracker.best_start(gaussians, frame, [T_wc, T_wc]) == 0  # a tie keeps the preferred (first) start
     result = Tracker(replace(config.tracking, resolution_scale=0.5), config.render).track(gaussians, frame, wrong, None)
     assert result.ok and 0 < result.valid_fraction <= 1
 
