@@ -182,8 +182,16 @@ class TrackingConfig:
     alpha_color: float = 0.5  # weight of the photometric term against depth
     coarse_to_fine: tuple[float, ...] = ()  # e.g. (0.5,) tracks at half resolution first
     coarse_share: float = 0.5  # fraction of the iterations given to the coarse levels (split evenly between them)
+    # Scale of tracking's finest level against the frame (coarse_to_fine scales multiply it): with a
+    # feature front-end's start a few steps at low resolution refine the pose (docs/tracking.md).
+    resolution_scale: float = 1.0
+    # ... but never below this width (pixels): a small frame keeps enough pixels to pin the pose. 0 = no floor.
+    min_width: int = 0
     use_exposure: bool = False
     opacity_threshold: float = 0.95  # pixels whose rendered opacity is below are ignored
+    # The feature front-end's start replaces the motion model's only when the map renders it with a loss lower
+    # by this fraction (Tracker.best_start).
+    start_margin: float = 0.1
     gradient_mask_percentile: float = 0.0  # keep colour pixels above this image-gradient percentile (0-100)
     min_valid_fraction: float = 0.05
     failure_loss_ratio: float = 5.0  # loss above ratio * running level = failure
@@ -221,6 +229,9 @@ class TrackingConfig:
         _check(0 < self.lr_final_ratio <= 1, "tracking.lr_final_ratio", "must be in (0, 1] (1 = constant rate)")
         _check(self.rprop_max_step_ratio >= 1, "tracking.rprop_max_step_ratio", "must be >= 1")
         _check(all(0 < s <= 1 for s in self.coarse_to_fine), "tracking.coarse_to_fine", "scales must be in (0, 1]")
+        _check(0 < self.resolution_scale <= 1, "tracking.resolution_scale", "must be in (0, 1]")
+        _check(0 <= self.start_margin < 1, "tracking.start_margin", "must be in [0, 1)")
+        _check(self.min_width >= 0, "tracking.min_width", "must be >= 0 pixels (0 = no floor)")
         _check(0 <= self.min_valid_fraction <= 1, "tracking.min_valid_fraction", "must be in [0, 1]")
         _check(0 <= self.gradient_mask_percentile < 100, "tracking.gradient_mask_percentile", "must be in [0, 100)")
         _check(self.failure_loss_ratio > 1, "tracking.failure_loss_ratio", "must be > 1")
@@ -230,6 +241,40 @@ class TrackingConfig:
         _check(self.relocalise_max_m > 0 and self.relocalise_max_deg > 0, "tracking.relocalise_max_*",
                "must be positive (metres, degrees)")
         _check(0 <= self.running_loss_momentum < 1, "tracking.running_loss_momentum", "must be in [0, 1)")
+
+
+@dataclass(frozen=True)
+class FrontendConfig:
+    """Wide-basin start of tracking (mipslam/frontend.py): ORB features with depth matched to the previous
+    frame, pose by PnP RANSAC; rendering then refines it. A failed match falls back to the motion model,
+    and a frame whose tracking fails is relocalised against the newest keyframes the same way."""
+
+    method: Literal["none", "orb_pnp"] = "orb_pnp"  # none: tracking starts from the motion model alone
+    num_features: int = 1000  # ORB keypoints per frame
+    pyramid_levels: int = 4  # ORB scale levels (factor 1.2 each)
+    fast_threshold: int = 12  # FAST corner threshold, grey levels of 255
+    ratio_test: float = 0.85  # Lowe's ratio test on the two nearest descriptors
+    # matching first searches around the motion model's projection, this fraction of the image size wide
+    # (repeated texture then cannot match the wrong copy); 0 matches over the whole image only
+    guided_radius: float = 0.1
+    max_hamming: int = 64  # descriptor distance above which a match is dropped (of 256 bits)
+    ransac_reprojection_px: float = 3.0  # PnP RANSAC inlier threshold at the tracked image's resolution
+    ransac_iterations: int = 200
+    min_inliers: int = 25  # fewer agreeing matches: the features say nothing (fall back / lost)
+    min_inlier_ratio: float = 0.25  # inliers / matches below this: not trusted
+    relocalise_keyframes: int = 8  # a frame whose tracking failed is matched to this many newest keyframes
+
+    def __post_init__(self):
+        _check(self.num_features >= 50, "frontend.num_features", "must be >= 50")
+        _check(1 <= self.pyramid_levels <= 8, "frontend.pyramid_levels", "must be in [1, 8]")
+        _check(0 < self.ratio_test <= 1, "frontend.ratio_test", "must be in (0, 1]")
+        _check(0 <= self.guided_radius <= 2, "frontend.guided_radius", "must be in [0, 2] (0 = off)")
+        _check(0 < self.max_hamming <= 256, "frontend.max_hamming", "must be in (0, 256]")
+        _check(self.ransac_reprojection_px > 0, "frontend.ransac_reprojection_px", "must be positive (pixels)")
+        _check(self.ransac_iterations >= 1, "frontend.ransac_iterations", "must be >= 1")
+        _check(self.min_inliers >= 6, "frontend.min_inliers", "must be >= 6 (PnP needs at least 6 points)")
+        _check(0 <= self.min_inlier_ratio <= 1, "frontend.min_inlier_ratio", "must be in [0, 1]")
+        _check(self.relocalise_keyframes >= 0, "frontend.relocalise_keyframes", "must be >= 0 (0 = off)")
 
 
 @dataclass(frozen=True)
@@ -373,6 +418,12 @@ class LoopConfig:
     # to the keyframes, and a revisited room optimises every other keyframe: on a 2000-frame run the
     # optimiser's time per frame grew 7x over 8 laps (docs/robustness.md, failure 12).
     pgo_window_keyframes: int = 200
+    # An applied correction is undone (and its new loop edges leave the graph) when the map, moved with it,
+    # renders the loop's keyframes more than this many dB (mean PSNR) worse than before: a loop edge that
+    # tears the map apart contradicts what tracking and mapping measured. Negative: no check. Right corrections
+    # of the data_synth lap dropped it by 1.3-1.9 dB before the map was refined (1 dB undid them: ATE 0.90 ->
+    # 1.97 cm, docs/tracking.md "Loop closure"); 3 dB undoes only tears.
+    max_correction_psnr_drop_db: float = 3.0
 
     def __post_init__(self):
         _check(self.pgo_window_keyframes >= 0, "loop.pgo_window_keyframes", "must be >= 0 (0 = the whole graph)")
@@ -412,6 +463,7 @@ class Config:
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    frontend: FrontendConfig = field(default_factory=FrontendConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)

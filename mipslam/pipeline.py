@@ -22,6 +22,7 @@ import torch
 
 from mipslam.config import Config, KeyframeConfig
 from mipslam.datasets import FrameCache, RGBDSequence
+from mipslam.frontend import Frontend
 from mipslam.io.run_folder import write_json_atomic
 from mipslam.keyframes import insert_keyframe, keyframe_decision
 from mipslam.loop.closer import LoopCloser, VerificationHook, close_loops
@@ -64,6 +65,8 @@ class Stages:
     loop: LoopCloser | None = None
     observer: Observer = field(default_factory=Observer)
     hooks: PipelineHooks = field(default_factory=PipelineHooks)
+    frontend: Frontend | None = None
+    frontend: Frontend | None = None
 
     @classmethod
     def build(cls, config: Config, sequence: RGBDSequence, device: torch.device, hooks: PipelineHooks | None = None,
@@ -75,8 +78,9 @@ class Stages:
         observer.declare("tracking", "keyframe", "mapping", *(("loop", "pgo") if loop is not None else ()))
         frames = FrameCache(sequence, device, capacity)
         observer.attach(frames)
+        frontend = Frontend(config.frontend) if config.frontend.method != "none" else None
         return cls(Tracker(config.tracking, config.render), Mapper(config.mapping, config.render), config.keyframes,
-                   frames, first_pose(sequence), loop, observer, hooks)
+                   frames, first_pose(sequence), loop, observer, hooks, frontend)
 
 
 # ----------------------------------------------------------------------------- one frame
@@ -86,7 +90,7 @@ def process_frame(stages: Stages, state: SLAMState, index: int, timestamp: float
     observe = stages.observer.stage
     frame = stages.frames[index]
     with observe("tracking"):
-        tracked = track_frame(stages.tracker, state, frame, stages.frames, stages.T_wc_first)
+        tracked = track_frame(stages.tracker, state, frame, stages.frames, stages.T_wc_first, stages.frontend)
         if stages.hooks.after_tracking is not None:
             tracked = stages.hooks.after_tracking(index, tracked, state)
     with observe("keyframe"):

@@ -29,6 +29,7 @@ from mipslam.config import RenderConfig, TrackingConfig
 from mipslam.errors import MipslamError
 from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry import nearest_rigid, resize_area
+from mipslam.frontend import Frontend, FrontendStart
 from mipslam.geometry.se3 import se3_exp, se3_inverse
 from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, image_gradient_mask, rgbd_l1_loss, rgbd_masks
 from mipslam.loop.registration import RegistrationOptions, register_rgbd_odometry
@@ -48,9 +49,9 @@ class TrackingResult:
 
     T_wc:           [4, 4] float64 camera-to-world (the motion-model pose when tracking failed)
     exposure:       [2] float32 (log_gain, bias) of the affine exposure model (zeros when off)
-    loss:           final loss at full resolution (NaN when it could not be computed)
+    loss:           final loss at the finest level (tracking.resolution_scale; NaN when it could not be computed)
     iterations:     optimiser steps taken over all levels
-    valid_fraction: fraction of pixels in the depth term at full resolution
+    valid_fraction: fraction of pixels in the depth term at the finest level
     ok:             False when tracking failed (the frame is flagged and not mapped)
     status:         "ok", "initial", "non_finite_loss", "too_few_valid_pixels" or "loss_jump"
     """
@@ -97,13 +98,19 @@ class Tracker:
 
     def _levels(self, frame: Frame) -> list[_Level]:
         cfg = self.config
-        scales = [s for s in cfg.coarse_to_fine if s < 1.0] + [1.0]
+        finest = max(cfg.resolution_scale, min(1.0, cfg.min_width / frame.intrinsics.width))
+        scales = [s * finest for s in cfg.coarse_to_fine if s < 1.0] + [finest]
         coarse_total = int(round(cfg.iterations * cfg.coarse_share)) if len(scales) > 1 else 0
         per_coarse = coarse_total // max(1, len(scales) - 1)
         levels = []
         for scale in scales:
             if scale == 1.0:
                 color, depth, intrinsics = frame.color, frame.depth, frame.intrinsics
+                iterations = cfg.iterations - per_coarse * (len(scales) - 1)
+            elif scale == finest:
+                intrinsics = frame.intrinsics.scaled(scale)
+                color = resize_area(frame.color, scale)
+                depth = resize_area(frame.depth, scale, valid=frame.depth > 0)
                 iterations = cfg.iterations - per_coarse * (len(scales) - 1)
             else:
                 intrinsics = frame.intrinsics.scaled(scale)
@@ -154,7 +161,7 @@ class Tracker:
         # The lowest full-resolution loss seen, its depth-pixel count, and the pose (and exposure) it was seen at.
         best_loss, best_depth_pixels, best = math.inf, 0, (torch.zeros(6, dtype=dtype, device=device), None)
         levels = self._levels(frame)
-        full = levels[-1]  # scale 1 is always last and gets at least half of the iterations
+        full = levels[-1]  # the finest level (tracking.resolution_scale) is last and gets at least half the iterations
         base_lrs = [group["lr"] for group in optimizer.param_groups]
         # Adam's rate decays geometrically within each level: lr_i = lr * ratio^(i / (n - 1)). Rprop reads lr
         # only to size its first steps and adapts them itself, so its rate is left alone.
@@ -185,7 +192,7 @@ class Tracker:
         # The best pose's loss and valid-pixel count (seen when it was rendered) decide success.
         xi_best, exposure_best = best
         T_cw_best = se3_exp(xi_best.to(torch.float64)) @ T_cw_init
-        valid_fraction = best_depth_pixels / max(1, frame.depth.numel())
+        valid_fraction = best_depth_pixels / max(1, full.depth.numel())
         final_loss = best_loss
         if not math.isfinite(final_loss):
             return self._failed(T_wc_init, iterations, "non_finite_loss", math.nan, valid_fraction)
@@ -196,6 +203,41 @@ class Tracker:
         T_wc = se3_inverse(T_cw_best.detach().to(torch.float64).cpu())
         exposure_out = torch.zeros(2) if exposure_best is None else exposure_best.detach().float().cpu()
         return TrackingResult(T_wc, exposure_out, final_loss, iterations, valid_fraction, True, "ok")
+
+    @torch.no_grad()
+    def best_start(
+        self,
+        gaussians: ActivatedGaussians,  # the frozen map (detached)
+        frame: Frame,
+        candidates: list[torch.Tensor],  # [4, 4] float64 start poses, the preferred first (e.g. the motion model's)
+    ) -> int:
+        """Index of the candidate start whose render at tracking's finest level explains the frame best (lowest
+        loss, no exposure; a candidate seeing under ``min_valid_fraction`` of the pixels through the map loses).
+        A later candidate replaces an earlier one only when its loss is lower by the fraction
+        ``tracking.start_margin``: on gentle motion the motion model's start is already in the basin, and a
+        feature pose a few millimetres off must not replace it on the noise of one render.
+
+        One forward render per candidate: the features' pose and the motion model's are judged by the same
+        objective that refinement then descends, so a consensus of wrong matches (repeated texture) cannot
+        replace a better motion-model start.
+        """
+        if len(candidates) < 2:
+            return 0
+        level = self._levels(frame)[-1]
+        device, dtype = gaussians.means.device, gaussians.means.dtype
+        losses = []
+        for T_wc in candidates:
+            T_cw = se3_inverse(T_wc.to(torch.float64)).to(device=device, dtype=dtype)
+            subset = frustum_subset(gaussians, T_cw, frame.intrinsics, self.render_config)
+            loss = self._loss(subset, T_cw, level, None)
+            valid = loss.num_depth_pixels / max(1, level.depth.numel())
+            value = float(loss.total)
+            losses.append(value if math.isfinite(value) and valid >= self.config.min_valid_fraction else math.inf)
+        best = 0
+        for i in range(1, len(candidates)):
+            if losses[i] < (1.0 - self.config.start_margin) * losses[best]:
+                best = i
+        return best
 
     @staticmethod
     def _failed(T_wc_init: torch.Tensor, iterations: int, status: str, loss: float, valid_fraction: float) -> TrackingResult:
@@ -235,24 +277,62 @@ def initial_result(T_wc: torch.Tensor) -> TrackingResult:
 # ----------------------------------------------------------------------------- the step in the frame loop
 
 def track_frame(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "FrameCache",
-                T_wc_first: torch.Tensor) -> TrackingResult:
+                T_wc_first: torch.Tensor, frontend: Frontend | None = None) -> TrackingResult:
     """Track ``frame`` against the frozen map of ``state``; the first frame (or any frame while the map is
-    empty) takes its pose from ``T_wc_first`` [4, 4] float64 or the motion model without tracking.
+    empty) takes its pose from ``T_wc_first`` [4, 4] float64 or the start without tracking.
 
-    ``frames[index]`` is an earlier frame (relocalisation aligns to the previous one). The result's
-    ``T_wc`` [4, 4] float64 (camera-to-world) is projected onto SE(3) (:func:`~mipslam.geometry.nearest_rigid`).
+    The start: the feature front-end's pose against the newest tracked frame (:func:`frontend_start`) where
+    the map renders it better than the motion model's prediction (:meth:`Tracker.best_start`), else the
+    prediction. A frame whose tracking fails is matched to the newest keyframes (:func:`relocalise_keyframes`),
+    then aligned to the previous frame (:func:`relocalise`). ``frames[index]`` is an earlier frame. The
+    result's ``T_wc`` [4, 4] float64 (camera-to-world) is projected onto SE(3)
+    (:func:`~mipslam.geometry.nearest_rigid`).
     """
     previous = state.frames[-2:]
     if not previous:
         return initial_result(T_wc_first)
     prediction = constant_velocity_prediction(previous[-1].T_wc, previous[-1].T_wc_tracked,
                                               previous[-2].T_wc_tracked if len(previous) == 2 else None)
+    start = frontend_start(frontend, state, frame, frames, prediction)
     if len(state.gaussian_map) == 0:
-        return initial_result(prediction)
+        return initial_result(start.T_wc)
     detached = state.gaussian_map.activated().detached()
-    result = tracker.track(detached, frame, prediction, state.running_loss)
+    T_wc_start = start.T_wc
+    if start.source == "features":  # the render loss judges between the motion model's pose and the features'
+        T_wc_start = (prediction, start.T_wc)[tracker.best_start(detached, frame, [prediction, start.T_wc])]
+    result = tracker.track(detached, frame, T_wc_start, state.running_loss)
+    result = relocalise_keyframes(tracker, frontend, state, frame, frames, detached, result)
     result = relocalise(tracker, state, frame, frames, detached, result)
     return replace(result, T_wc=nearest_rigid(result.T_wc))
+
+
+def frontend_start(frontend: Frontend | None, state: "SLAMState", frame: Frame, frames: "FrameCache",
+                   prediction: torch.Tensor) -> FrontendStart:
+    """Tracking's start: the feature front-end against the newest tracked frame, or the motion model's
+    ``prediction`` [4, 4] float64 (camera-to-world) when there is no front-end or no tracked frame."""
+    reference = next((f for f in reversed(state.frames) if f.tracked), None)
+    if frontend is None or reference is None:
+        return Frontend.motion_model(prediction)
+    return frontend.start(frame, frames[reference.index], reference.T_wc, prediction)
+
+
+def relocalise_keyframes(tracker: Tracker, frontend: Frontend | None, state: "SLAMState", frame: Frame,
+                         frames: "FrameCache", gaussians: ActivatedGaussians, result: TrackingResult) -> TrackingResult:
+    """A frame whose tracking failed is matched to the newest ``frontend.relocalise_keyframes`` keyframes
+    (features + PnP) and tracked again from the best match; it stays failed (not mapped) when no keyframe
+    agrees or the retry fails too."""
+    if result.ok or frontend is None or not state.keyframe_frames:
+        return result
+    newest = [state.frames[p] for p in reversed(state.keyframe_frames)][: frontend.config.relocalise_keyframes]
+    start = frontend.relocalise(frame, [(frames[r.index], r.T_wc) for r in newest])
+    if start is None:
+        return result
+    retry = tracker.track(gaussians, frame, start.T_wc, state.running_loss)
+    if retry.ok:
+        log.info("frame %d: relocalised against frame %d (%d feature inliers; tracking had failed: %s)",
+                 frame.index, start.reference_index, start.inliers, result.status)
+        return retry
+    return result
 
 
 def relocalise(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "FrameCache",

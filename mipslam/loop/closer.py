@@ -337,6 +337,26 @@ class LoopCloser:
             return LoopStep(LoopState(graph, descriptors), tuple(reports), None, None, 0.0)
         return self._optimise(graph, descriptors, keyframe, new_edges, tuple(reports))
 
+    def keeps_correction(self, psnr_before_db: list[float], psnr_moved_db: list[float]) -> bool:
+        """Whether an applied correction stands: the map moved with it renders the loop's keyframes (mean PSNR,
+        dB) at most ``max_correction_psnr_drop_db`` worse than before it. A right loop closure brings the old
+        and the new parts of the map together; a wrong one tears the map apart where the keyframes look."""
+        limit = self.config.max_correction_psnr_drop_db
+        if limit < 0 or not psnr_before_db or not psnr_moved_db:
+            return True
+        before = sum(psnr_before_db) / len(psnr_before_db)
+        moved = sum(psnr_moved_db) / len(psnr_moved_db)
+        return not moved < before - limit
+
+    @staticmethod
+    def without_loop_edges(state: LoopState, loop_edges: list[list[int]]) -> LoopState:
+        """``state`` with the loop edges between the listed keyframe pairs ((i, j) each) removed from the graph."""
+        pairs = {tuple(int(n) for n in pair) for pair in loop_edges}
+        graph = state.graph
+        drop = [e for e in range(graph.num_edges)
+                if bool(graph.edge_is_loop[e]) and tuple(graph.edge_nodes[e].tolist()) in pairs]
+        return replace(state, graph=graph.without_edges(drop))
+
     def _within_expected_drift(self, result: RegistrationResult, chain_T_wc: torch.Tensor) -> RegistrationResult:
         """``result`` rejected when its correction of the estimate exceeds ``max_drift_sigmas`` standard deviations
         of the odometry drift over the keyframe chain ``chain_T_wc`` [k - i + 1, 4, 4] (candidate to query)."""
@@ -462,33 +482,48 @@ def correct_map(closer: LoopCloser, mapper: Mapper, state: "SLAMState", frames: 
     their corrected, fixed poses (:func:`~mipslam.mapping.refine_after_correction`). Returns the loops.json
     entry: Gaussians moved, refinement steps and seconds.
 
-    With ``observer.diagnostics`` the entry also has the map's PSNR (dB) at those keyframes against their
-    images: before the correction at the old poses, at the new poses with the map not yet moved (what
-    correcting only the poses would give), after the Gaussians moved with their anchor keyframes, and after
-    the refinement. Each costs a render per keyframe, so a normal run skips them.
+    The map's PSNR (dB) at those keyframes against their images is measured before the correction at the old
+    poses and after the Gaussians moved with their anchor keyframes: a correction whose moved map renders them
+    worse by more than ``loop.max_correction_psnr_drop_db`` (:meth:`LoopCloser.keeps_correction`) is undone
+    (poses and Gaussians back, its new loop edges removed from the graph). With ``observer.diagnostics`` the
+    entry also has the PSNR at the new poses with the map not yet moved (what correcting only the poses
+    would give) and after the refinement (a render per keyframe each).
     """
     check = sorted({step.optimisation.query_keyframe, *(i for i, _ in step.optimisation.new_loop_edges)})
     diagnostics = closer.observer.diagnostics
     start = time.perf_counter()
-    measure = (lambda poses: [_keyframe_psnr(mapper, state, frames, k, poses(k)) for k in check]) if diagnostics \
-        else (lambda poses: None)
+
+    def measure(poses) -> list[float]:
+        return [_keyframe_psnr(mapper, state, frames, k, poses(k)) for k in check]
+
     before = measure(lambda k: state.keyframe_record(k).T_wc)
-    poses_only = measure(lambda k: step.corrected_T_wc[k])
+    poses_only = measure(lambda k: step.corrected_T_wc[k]) if diagnostics else None
+    T_wc_old = state.keyframe_poses()
     moved = state.correct_keyframe_poses(step.corrected_T_wc)
     moved_only = measure(lambda k: state.keyframe_record(k).T_wc)
+    entry = {"gaussians_moved": moved, "psnr_keyframes": check, "psnr_before_db": before, "psnr_moved_db": moved_only}
+    if not closer.keeps_correction(before, moved_only):
+        state.correct_keyframe_poses(T_wc_old)
+        state.loop = closer.without_loop_edges(state.loop, step.optimisation.new_loop_edges)
+        logger.info("loop correction at keyframe %d undone: the moved map renders keyframes %s at %.2f dB, %.2f dB "
+                    "before", step.optimisation.query_keyframe, check, sum(moved_only) / len(moved_only),
+                    sum(before) / len(before))
+        entry.update({"gaussians_moved": 0, "refine_iterations": 0, "applied": False, "undone": True,
+                      "map_correction_s": time.perf_counter() - start})
+        return entry
     refine_iterations = refine_after_correction(mapper, state, frames, check, closer.config.refine_iterations)
-    after = measure(lambda k: state.keyframe_record(k).T_wc)
-    entry = {"gaussians_moved": moved, "psnr_keyframes": check, "refine_iterations": refine_iterations}
+    entry["refine_iterations"] = refine_iterations
     if diagnostics:
+        after = measure(lambda k: state.keyframe_record(k).T_wc)
         logger.info("loop correction at keyframe %d: moved %d Gaussians; map PSNR at keyframes %s %.2f -> %.2f dB "
                     "(%.2f dB with the poses alone corrected, %.2f dB with the map moved before refinement)",
                     step.optimisation.query_keyframe, moved, check, sum(before) / len(before), sum(after) / len(after),
                     sum(poses_only) / len(poses_only), sum(moved_only) / len(moved_only))
-        entry.update({"psnr_before_db": before, "psnr_poses_only_db": poses_only, "psnr_moved_db": moved_only,
-                      "psnr_after_db": after})
+        entry.update({"psnr_poses_only_db": poses_only, "psnr_after_db": after})
     else:
-        logger.info("loop correction at keyframe %d: moved %d Gaussians, %d refinement steps over keyframes %s",
-                    step.optimisation.query_keyframe, moved, refine_iterations, check)
+        logger.info("loop correction at keyframe %d: moved %d Gaussians (map PSNR at keyframes %s %.2f -> %.2f dB), "
+                    "%d refinement steps", step.optimisation.query_keyframe, moved, check,
+                    sum(before) / len(before), sum(moved_only) / len(moved_only), refine_iterations)
     entry["map_correction_s"] = time.perf_counter() - start
     return entry
 
