@@ -1,4 +1,4 @@
-"""Aliasing, measured (issue 3): PSNR of point / mip / ewa / eaa against the exact pixel integral.
+"""Aliasing, measured: PSNR of point / mip / ewa / eaa against the exact pixel integral.
 
 Scene: many small, textured-like Gaussians (random colour, opacity, anisotropy and orientation) on a
 slanted surface in front of the camera, sized so that at the *native* resolution (``--width`` x

@@ -1,4 +1,4 @@
-"""Benchmark: a long run on a data_synth loop sequence that revisits the same room (issue 8, "Long runs").
+"""Benchmark: a long run on a data_synth loop sequence that revisits the same room (docs/robustness.md, "Long runs").
 
 The sequence is data_synth's ``loop`` trajectory at 80x60 (``--laps`` laps; by default at least 2
 and as many as keep at least 240 frames per lap, where the camera looks outwards and turns a full

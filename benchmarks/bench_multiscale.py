@@ -1,4 +1,4 @@
-"""Benchmark: PSNR against rendering scale for each footprint mode (issue 6, "Must show").
+"""Benchmark: PSNR against rendering scale for each footprint mode.
 
 A data_synth loop sequence is mapped by the full pipeline (``mipslam run``, tracking included) at one
 resolution; the final map is then rendered from the estimated poses at 1/8, 1/4, 1/2, 1 and 2 times the

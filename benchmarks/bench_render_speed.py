@@ -1,4 +1,4 @@
-"""Speed and memory of the renderer backends (issue 3, "Speed and memory").
+"""Speed and memory of the renderer backends.
 
 Scene: 20k random Gaussians in front of a 320x240 pinhole camera (f = 300 px), depths 2-6 m, projected
 standard deviations 0.5-3 px (per axis, random rotations), opacities 0.1-1, random colours. Loss for the

@@ -1,4 +1,4 @@
-"""How cost grows with the work (issue 7, "Scaling"): renderer time against Gaussian count and against
+"""How cost grows with the work: renderer time against Gaussian count and against
 pixel count, PGO time against keyframe count, each with the fitted log-log exponent.
 
 Renderer (``rasterize``, cpu backend, ``eaa`` with the default options, ``--threads`` torch threads):

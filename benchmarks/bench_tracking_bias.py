@@ -1,6 +1,6 @@
 """Benchmark: how far tracking settles from the truth against a map that mapping fitted to one true view.
 
-A diagnostic for the bias of the tracking optimum (docs/bench.md, "Session 11" and "Session 12"). Frame 0
+A diagnostic for the bias of the tracking optimum (docs/mapping.md). Frame 0
 of a data_synth sequence is mapped at its ground-truth pose, as the pipeline maps its first frame (the
 preset's ``mapping.first_frame_iterations``). Then:
 

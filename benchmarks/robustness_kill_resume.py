@@ -1,5 +1,5 @@
 """Benchmark: kill -9 a running ``mipslam run`` at random moments, ``--resume`` it, compare with an
-uninterrupted run (issue 8, "Interrupted runs and checkpoints").
+uninterrupted run (docs/robustness.md, "Interrupted runs").
 
 Set-up: a tiny data_synth loop sequence (40x30, replica layout, 10 frames by default) and the
 tiny-run settings of tests/test_pipeline.py with ``run.checkpoint_every=2``. One uninterrupted

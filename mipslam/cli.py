@@ -280,8 +280,8 @@ def _cmd_run(args) -> int:
     # full passes, each of which would rescan ~200k objects (0.15-0.2 s; 0.4 s of GC in 20 frames -> 0.1 s).
     gc.freeze()
     try:
-        summary = run_slam(config, folder.root, resume=args.resume is not None, evaluate=not args.no_eval,
-                           observer=viewer)
+        observed = {"observer": viewer} if viewer is not None else {}  # else the run's own Observer
+        summary = run_slam(config, folder.root, resume=args.resume is not None, evaluate=not args.no_eval, **observed)
     except BaseException:
         if viewer is not None:
             viewer.close()

@@ -57,7 +57,7 @@ class RunConfig:
     release_memory_every: int = 50
     # allocations of at least this many KiB come from mmap and go back to the OS when freed (glibc
     # mallopt M_MMAP_THRESHOLD, fixed); 0 keeps glibc's dynamic threshold. 64 halves the RSS creep of
-    # a 2000-frame run (+31 -> +17 MiB) but costs 11 % frames/s (docs/robustness.md, failure 10).
+    # a 2000-frame run (+31 -> +17 MiB) but costs 11 % frames/s (docs/robustness.md, "Long runs").
     mmap_threshold_kib: int = 0
     # Measurements that cost time and change no result (the map's PSNR at the loop's keyframes around each loop
     # correction, in loops.json); off, a run renders nothing it does not need.
@@ -168,7 +168,7 @@ class TrackingConfig:
     # each coordinate's first step; it grows 1.2x while the coordinate's gradient keeps its sign and
     # halves when it flips, so a good motion-model pose is refined in small steps and a level stops once
     # the steps fall below convergence_threshold. The fast and balanced presets use rprop (lr 5e-4 / 1e-3,
-    # threshold 1e-4: half of adam's tracking time at 320x240, docs/bench.md "Session 7"). adam stays the
+    # threshold 1e-4: half of adam's tracking time at 320x240, docs/bench.md). adam stays the
     # default: at 40x30 with 15 iterations rprop's growing steps lag a 2 cm/frame motion.
     optimizer: Literal["adam", "rprop"] = "adam"
     lr_translation: float = 2e-3
@@ -206,8 +206,8 @@ class TrackingConfig:
     running_loss_momentum: float = 0.9
     # Footprint mode of tracking's renders (null: render.mode); mapping always renders in render.mode. On a
     # 320x240 map EAA's row rule for sub-pixel splats made a pose-only render 3x as expensive as mip's, and
-    # mip tracking kept the ATE within the seed spread; at 160x120 it cost 0.2-0.3 cm (docs/bench.md
-    # "Session 9"). The balanced preset sets mip.
+    # mip tracking kept the ATE within the seed spread; at 160x120 it cost 0.2-0.3 cm (docs/bench.md).
+    # The balanced preset sets mip.
     render_mode: Literal["point", "mip", "ewa", "eaa", "exact"] | None = None
     # Depth term on the alpha-normalised rendered depth D / max(A, depth_alpha_floor) instead of the raw
     # D = sum T a z, which reads short wherever the map's opacity A < 1 and so pulls the camera towards
@@ -310,7 +310,7 @@ class MappingConfig:
     lr_colors: float = 5e-3
     # Adam rate of the joint refinement of the poses of the keyframes mapping trains on (m, rad; keyframe 0
     # stays fixed). Adam moves a pose by about this per step, so the rate times the steps bounds how far
-    # mapping can correct tracking (docs/bench.md "Session 13" and "Session 14": fast takes 3e-4).
+    # mapping can correct tracking (docs/bench.md; fast takes 3e-4).
     lr_poses: float = 1e-4
     alpha_color: float = 0.5
     isotropy_weight: float = 10.0
@@ -332,7 +332,7 @@ class MappingConfig:
     # also blocks real surfaces and costs tracking accuracy, so the base value is 1.
     add_min_distance_ratio: float = 1.0
     # A new Gaussian's opacity. With short mapping the map's rendered opacity stays below 1 (about 0.985 at 0.5), and
-    # the raw depth term then places the Gaussians about 1 / A - 1 too far; `fast` uses 0.98 (docs/bench.md "Session 12").
+    # the raw depth term then places the Gaussians about 1 / A - 1 too far; `fast` uses 0.98 (benchmarks/bench_tracking_bias.py).
     initial_opacity: float = 0.5
     prune_opacity: float = 0.005
     prune_max_sigma_px: float = 50.0  # std-dev larger than this many pixels (seen from the keyframe) is absurd
@@ -416,7 +416,7 @@ class LoopConfig:
     # The pose-graph optimisation frees only the newest keyframes (older ones that share an edge with
     # them stay fixed as anchors); 0 frees the whole graph. A whole-graph solve costs time in proportion
     # to the keyframes, and a revisited room optimises every other keyframe: on a 2000-frame run the
-    # optimiser's time per frame grew 7x over 8 laps (docs/robustness.md, failure 12).
+    # optimiser's time per frame grew 7x over 8 laps (docs/robustness.md, "Long runs").
     pgo_window_keyframes: int = 200
     # An applied correction is undone (and its new loop edges leave the graph) when the map, moved with it,
     # renders the loop's keyframes more than this many dB (mean PSNR) worse than before: a loop edge that

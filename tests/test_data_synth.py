@@ -1,4 +1,4 @@
-"""data_synth: procedural RGB-D sequences with exact ground truth (issue 2, item 4)."""
+"""data_synth: procedural RGB-D sequences with exact ground truth."""
 from __future__ import annotations
 
 import json

@@ -108,5 +108,5 @@ def test_cli_export(tiny_run, tmp_path, capfd):
         assert "[Open3D" not in text and "\x1b[" not in text, text
     assert not list(out.parent.glob(".*partial*"))
     assert main(["export", str(tmp_path / "missing"), "--mesh", str(out)]) == 2
-    assert main(["export", str(tiny_run), "--mesh", str(out), "--memory-limit", "0.5"]) == 2
+    assert main(["export", str(tiny_run), "--mesh", str(out), "--memory-limit", "0.5", "--overwrite"]) == 2
     assert "--memory-limit" in capfd.readouterr().err

@@ -41,7 +41,7 @@ def test_densifying_a_view_the_map_already_holds_adds_no_copies(tiny_sequence):
 def test_mapping_moves_a_perturbed_keyframe_pose_towards_the_truth(one_frame_map):
     # Mapping refines the poses of the keyframes it trains on (mapping.lr_poses), with the first keyframe
     # fixed as the anchor. Adam moves a pose by about the rate per step: 3e-4 over 40 steps can undo the
-    # perturbation; the default 1e-4 leaves 2.9 mm and 3.6 mrad of its 5.4 / 5.4 (docs/bench.md "Session 13").
+    # perturbation; the default 1e-4 leaves 2.9 mm and 3.6 mrad of its 5.4 / 5.4.
     seq = one_frame_map[0]
     config, sequence, gmap, _, _ = map_of_first_frame(seq, 60)
     mapping = replace(config.mapping, lr_poses=3e-4)

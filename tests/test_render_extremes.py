@@ -1,4 +1,4 @@
-"""Numerical extremes give finite images and finite gradients, never NaN or Inf (issue 3), on every backend.
+"""Numerical extremes give finite images and finite gradients, never NaN or Inf, on every backend.
 
 Each test runs on the pure-PyTorch reference backend and on the compiled cpu backend (skipped where it
 cannot be built); the cpu backend's images must also match the reference's.
@@ -22,7 +22,7 @@ def backend(request) -> str:
 
 
 def extreme_scene():
-    """Normal Gaussians plus every extreme issue 3 lists, one per row."""
+    """Normal Gaussians plus every numerical extreme, one per row."""
     rows = [  # mean xyz, quat wxyz, scales xyz, opacity
         ((0.0, 0.0, 2.0), (1, 0, 0, 0), (0.05, 0.05, 0.05), 0.7),  # ordinary
         ((0.1, -0.1, 3.0), (0.9, 0.1, 0.2, 0.3), (0.2, 0.01, 0.1), 0.5),  # ordinary, elongated

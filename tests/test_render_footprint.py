@@ -1,4 +1,4 @@
-"""Footprint modes against the exact pixel integral (issue 3, "Correctness")."""
+"""Footprint modes against the exact pixel integral."""
 from __future__ import annotations
 
 import math

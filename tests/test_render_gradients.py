@@ -1,4 +1,4 @@
-"""float64 gradcheck of the torch backend on tiny scenes, every mode, viewmat included (issue 3)."""
+"""float64 gradcheck of the torch backend on tiny scenes, every mode, viewmat included."""
 from __future__ import annotations
 
 import functools

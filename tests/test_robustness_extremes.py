@@ -1,4 +1,4 @@
-"""Issue 8, "Sensor and scene extremes": whole runs on tiny data_synth variants of one sequence.
+"""Sensor and scene extremes (docs/robustness.md): whole runs on tiny data_synth variants of one sequence.
 
 The clean sequence: data_synth's ``loop`` trajectory (12 frames, 40x30, scene seed 0) rendered
 with :func:`data_synth.render_view` and written as a Replica folder. Each variant changes it:
@@ -230,7 +230,7 @@ def test_extreme_input_run_finishes_flagged_finite_capped_and_recovers(name, ren
         # at rest (frames 5-24 are one image): no keyframe is added, and the estimate settles: over the
         # last 10 repeats it stays within 2 cm (two fifths of a pixel's footprint at the wall). At 40x30 the
         # settling is chaotic: with mapping.lr_poses anywhere in 0.6-1.5e-4 this spread ranged over 0.32-1.69 cm,
-        # with either motion model (session 14); a wandering estimate moves by many centimetres.
+        # with either motion model; a wandering estimate moves by many centimetres.
         assert run.summary.keyframes == clean_run.summary.keyframes
         settled = run.estimated_T_wc[15:25, :3, 3]
         spread = float(np.linalg.norm(settled - settled.mean(axis=0), axis=1).max())

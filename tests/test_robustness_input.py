@@ -1,4 +1,4 @@
-"""Issue 8, "Bad input": the dataset cases not covered by test_datasets_errors.py, and the CLI's
+"""Bad input (docs/robustness.md): the dataset cases not covered by test_datasets_errors.py, and the CLI's
 nonexistent paths, unwritable run folders and a disk that fills up while outputs are written.
 
 Every case ends in a DatasetError naming the file (and line), or in exit code 2 with one line on
@@ -49,7 +49,7 @@ def field_of_line(path: Path, line: int, index: int) -> str:
     return path.read_text().splitlines()[line - 1].split()[index]
 
 
-# ----------------------------------------------------------------------------- datasets: the rest of issue 8's list
+# ----------------------------------------------------------------------------- datasets: the rest of the bad-input cases
 
 def _tum_case(case: str, root: Path):
     """Damage a fresh 4-frame TUM folder; returns (how to trigger the error, file, line, message)."""

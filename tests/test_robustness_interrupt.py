@@ -1,4 +1,4 @@
-"""Issue 8, "Interrupted runs": ``mipslam run`` killed with SIGKILL at chosen moments (inside tracking,
+"""Interrupted runs (docs/robustness.md): ``mipslam run`` killed with SIGKILL at chosen moments (inside tracking,
 mapping and a checkpoint write) and resumed gives exactly the uninterrupted run; Ctrl-C inside
 mapping too. The trials are those of benchmarks/robustness_kill_resume.py (which runs 20 and more),
 with a fixed seed; the reference and the resumes run in this process to save interpreter start-ups."""

@@ -117,7 +117,7 @@ def test_frustum_subset_renders_like_the_whole_map_from_nearby_poses():
 
 def test_tracking_renders_the_map_with_its_own_filter_rates(tiny_sequence, tmp_path, monkeypatch):
     """With ``render.filter_3d`` the frozen map that tracking sees keeps its per-Gaussian sampling rates, so
-    tracking renders the same filtered map that mapping fitted (before session 12 it fell back to the
+    tracking renders the same filtered map that mapping fitted (it once fell back to the
     tracked camera's own rate)."""
     seen = []
     original = Tracker.track

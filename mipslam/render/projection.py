@@ -6,7 +6,7 @@ the pinhole projection at the Gaussian's camera-frame centre. The 2D covariance 
 ``M = J W R S`` (2x3) as ``M M^T``, and its determinant by Cauchy-Binet as the sum of the squared
 2x2 minors of M, which is never negative and keeps full relative precision for thin splats.
 
-Robustness (issue 3 "numerical extremes"): Gaussians with a non-finite entry in any input, a zero
+Robustness (numerical extremes): Gaussians with a non-finite entry in any input, a zero
 quaternion, a centre at or behind the near plane or beyond the far plane, a direction far outside the
 view (|x/z| > 1e6) or a projected size above 1e9 px are dropped (``visible = False``, opacity 0) and
 their values replaced before any arithmetic, so neither images nor gradients see NaN or Inf. As in
