@@ -188,11 +188,7 @@ class SequenceBase:
             yield self[i]
 
     def __getitem__(self, index: int) -> Frame:
-        if isinstance(index, bool) or not isinstance(index, (int, np.integer)):
-            raise TypeError(f"frame index must be an integer, got {type(index).__name__}")
-        index = int(index)
-        if not 0 <= index < len(self):
-            raise IndexError(f"frame index {index} out of range for a sequence of {len(self)} frames")
+        index = checked_frame_index(index, len(self))
         record = self._records[index]
         color = read_color(record.color_path)  # [H, W, 3]
         depth = read_depth(record.depth_path, self.depth_scale)  # [H, W]
@@ -230,6 +226,16 @@ class SequenceBase:
     def __repr__(self) -> str:
         i = self.intrinsics
         return f"{type(self).__name__}({self.name!r}, {len(self)} frames, {i.width}x{i.height}, root={str(self.root)!r})"
+
+
+def checked_frame_index(index, length: int) -> int:
+    """``index`` as an int in [0, length); TypeError for a non-integer, IndexError outside the sequence."""
+    if isinstance(index, bool) or not isinstance(index, (int, np.integer)):
+        raise TypeError(f"frame index must be an integer, got {type(index).__name__}")
+    index = int(index)
+    if not 0 <= index < length:
+        raise IndexError(f"frame index {index} out of range for a sequence of {length} frames")
+    return index
 
 
 def read_json(path: Path):

@@ -41,6 +41,7 @@ import torch
 
 from mipslam.config import DatasetConfig
 from mipslam.datasets.images import downscale_color, downscale_depth
+from mipslam.datasets.base import checked_frame_index
 from mipslam.errors import DatasetError
 from mipslam.types import Frame, Intrinsics
 
@@ -170,11 +171,7 @@ class RealSenseSequence:
         return len(self._stamps) if self._ended else self._length
 
     def __getitem__(self, index: int) -> Frame:
-        if isinstance(index, bool) or not isinstance(index, (int, np.integer)):
-            raise TypeError(f"frame index must be an integer, got {type(index).__name__}")
-        index = int(index)
-        if not 0 <= index < len(self):
-            raise IndexError(f"frame index {index} out of range for a sequence of {len(self)} frames")
+        index = checked_frame_index(index, len(self))
         self._ensure(index)
         color_u8, depth_u16 = self._store[index]
         color = color_u8.astype(np.float32) / 255.0
