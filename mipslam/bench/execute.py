@@ -23,6 +23,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Protocol
 
+from mipslam.optional import import_optional
 from mipslam.bench.spec import EVAL_FILE, PEER_JOB_FILE, Job
 from mipslam.errors import MipslamError
 
@@ -348,12 +349,9 @@ class LocalExecutor:
 
 
 def _import_ray():
-    try:
-        import ray
-    except ImportError as exc:
-        raise MipslamError(f"--ray needs the optional package Ray ({exc}); install it with "
-                           "pip install 'mipslam[ray]' (or pip install 'ray>=2.9'), or run without --ray") from None
-    return ray
+    return import_optional("ray", package="Ray", needed_by="--ray",
+                           install="install it with pip install 'mipslam[ray]' (or pip install 'ray>=2.9'), or run "
+                                   "without --ray")
 
 
 @dataclass(frozen=True)

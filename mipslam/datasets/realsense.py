@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from mipslam.optional import import_optional
 from mipslam.config import DatasetConfig
 from mipslam.datasets.images import downscale_color, downscale_depth
 from mipslam.datasets.base import checked_frame_index
@@ -76,13 +77,9 @@ class StreamEnded(DatasetError):
 
 def import_pyrealsense2():
     """The pyrealsense2 module, or DatasetError saying how to install it."""
-    try:
-        import pyrealsense2 as rs
-    except ImportError as exc:
-        raise DatasetError(None, f"dataset.kind realsense/realsense_bag needs the optional package pyrealsense2 "
-                                 f"({exc}); install it with pip install 'mipslam[realsense]' (or pip install "
-                                 "pyrealsense2)") from None
-    return rs
+    return import_optional("pyrealsense2", needed_by="dataset.kind realsense/realsense_bag",
+                           install="install it with pip install 'mipslam[realsense]' (or pip install pyrealsense2)",
+                           make_error=lambda message: DatasetError(None, message))
 
 
 class _LazyTimestamps:

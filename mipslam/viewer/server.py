@@ -22,6 +22,7 @@ from typing import Callable
 
 import numpy as np
 
+from mipslam.optional import import_optional
 from mipslam.errors import MipslamError
 from mipslam.types import Intrinsics
 from mipslam.viewer.snapshot import SceneSnapshot, matrix_to_quaternion_wxyz
@@ -46,12 +47,8 @@ PANEL_IMAGE_WIDTH = 320
 
 def import_viser():
     """The viser module, or MipslamError saying how to install it."""
-    try:
-        import viser
-    except ImportError as exc:
-        raise MipslamError(f"the web viewer needs the optional package viser ({exc}); install it with "
-                           "pip install 'mipslam[viewer]' (or pip install viser)") from None
-    return viser
+    return import_optional("viser", needed_by="the web viewer",
+                           install="install it with pip install 'mipslam[viewer]' (or pip install viser)")
 
 
 @dataclass(frozen=True)

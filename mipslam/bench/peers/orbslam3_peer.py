@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mipslam.optional import import_optional
 from mipslam.bench.peers.common import PeerRun, peer_frames
 from mipslam.bench.peers.options import ORBSLAM3Options
 from mipslam.errors import MipslamError
@@ -78,11 +79,7 @@ def frames_of_saved_poses(saved_times: np.ndarray, frame_times: np.ndarray) -> t
 
 
 def _import_pyorbslam3():
-    try:
-        import pyorbslam3
-    except ImportError as exc:
-        raise MipslamError(f"peer orbslam3 needs the optional package pyorbslam3 ({exc}); {PACKAGE_HINT}") from None
-    return pyorbslam3
+    return import_optional("pyorbslam3", needed_by="peer orbslam3", install=PACKAGE_HINT)
 
 
 def run_orbslam3(sequence, options: ORBSLAM3Options, work_dir: Path) -> PeerRun:
