@@ -329,6 +329,38 @@ def test_downscale_depth_needs_enough_valid_samples():
     assert downscale_depth(np.full((4, 4), np.inf, np.float32), 2).max() == 0.0
 
 
+def _reference_downscale_depth(depth: np.ndarray, factor: int, edge_gap: float = 0.05) -> np.ndarray:
+    """The rule of mipslam.datasets.images written block by block: sort the valid samples, keep the run
+    before the first relative gap above edge_gap, average it; a block needs half its samples valid."""
+    h, w = depth.shape[0] // factor, depth.shape[1] // factor
+    out = np.zeros((h, w), np.float32)
+    for i in range(h):
+        for j in range(w):
+            block = depth[i * factor:(i + 1) * factor, j * factor:(j + 1) * factor].astype(np.float64).ravel()
+            valid = np.sort(block[np.isfinite(block) & (block > 0)])
+            if valid.size < max(1, int(np.ceil(0.5 * factor * factor))):
+                continue
+            end = 1
+            while end < valid.size and valid[end] / valid[end - 1] <= 1.0 + edge_gap:
+                end += 1
+            out[i, j] = np.float32(valid[:end].sum() / end)
+    return out
+
+
+@pytest.mark.parametrize("factor", [2, 3, 4])
+def test_downscale_matches_the_block_by_block_rule(factor):
+    rng = np.random.default_rng(factor)
+    depth = rng.uniform(0.3, 6.0, (26, 37)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.3] = 0.0  # holes
+    depth[rng.random(depth.shape) < 0.2] *= 1.5  # step edges inside blocks
+    depth[0, :5], depth[1, :4] = np.nan, np.inf
+    np.testing.assert_array_equal(downscale_depth(depth, factor), _reference_downscale_depth(depth, factor))
+    color = rng.integers(0, 256, (26, 37, 3)).astype(np.float32) / np.float32(255)
+    h, w = 26 // factor, 37 // factor
+    blocks = color[:h * factor, :w * factor].reshape(h, factor, w, factor, 3).astype(np.float64)
+    np.testing.assert_array_equal(downscale_color(color, factor), blocks.mean(axis=(1, 3)).astype(np.float32))
+
+
 @pytest.mark.parametrize("factor", [2, 3])
 def test_downscaled_intrinsics_follow_the_pixel_centre_rule(tmp_path, factor):
     write_replica(tmp_path / "rep", n=2)  # 16 x 12

@@ -123,21 +123,37 @@ def crop_to_multiple(image: np.ndarray, factor: int) -> np.ndarray:
     return image[: height - height % factor, : width - width % factor]
 
 
-def _blocks(image: np.ndarray, factor: int) -> np.ndarray:
-    """[H, W, ...] (multiples of factor) -> [H/f, W/f, f*f, ...]"""
-    height, width = image.shape[:2]
-    rest = image.shape[2:]
-    blocks = image.reshape(height // factor, factor, width // factor, factor, *rest)
-    blocks = np.moveaxis(blocks, 2, 1)  # [h, w, f, f, ...]
-    return blocks.reshape(height // factor, width // factor, factor * factor, *rest)
+def _block_samples(image: np.ndarray, factor: int) -> list[np.ndarray]:
+    """The ``factor * factor`` samples of every block, row-major within the block.  [H, W, ...] (multiples of
+    factor) -> factor * factor views [H / f, W / f, ...]"""
+    return [image[dy::factor, dx::factor] for dy in range(factor) for dx in range(factor)]
 
 
 def downscale_color(color: np.ndarray, factor: int) -> np.ndarray:
-    """Area-average an image by an integer factor.  color [H, W, C] float -> [H // f, W // f, C]"""
+    """Area-average an image by an integer factor.  color [H, W, C] float -> [H // f, W // f, C]
+
+    The block sums are taken in float64 (exact for 8-bit colour), then divided by ``f * f``."""
     if factor == 1:
         return color
-    cropped = crop_to_multiple(color, factor)
-    return _blocks(cropped, factor).mean(axis=2, dtype=np.float64).astype(color.dtype)
+    samples = _block_samples(crop_to_multiple(color, factor), factor)
+    total = samples[0].astype(np.float64)
+    for sample in samples[1:]:
+        total += sample
+    total /= factor * factor
+    return total.astype(color.dtype)
+
+
+def _sorted_samples(samples: list[np.ndarray]) -> list[np.ndarray]:
+    """Element-wise ascending order of equally shaped arrays (a sorting network for 4, else np.sort)."""
+    if len(samples) == 4:
+        a, b, c, d = samples
+        a, b = np.minimum(a, b), np.maximum(a, b)
+        c, d = np.minimum(c, d), np.maximum(c, d)
+        a, c = np.minimum(a, c), np.maximum(a, c)
+        b, d = np.minimum(b, d), np.maximum(b, d)
+        b, c = np.minimum(b, c), np.maximum(b, c)
+        return [a, b, c, d]
+    return list(np.sort(np.stack(samples), axis=0))
 
 
 def downscale_depth(
@@ -155,17 +171,20 @@ def downscale_depth(
     if factor == 1:
         return depth
     cropped = crop_to_multiple(depth, factor).astype(np.float64)
-    valid = np.isfinite(cropped) & (cropped > 0)
-    samples = np.where(valid, cropped, np.inf)
-    blocks = np.sort(_blocks(samples, factor), axis=2)  # [h, w, f*f], invalid (+inf) last
-    count = np.isfinite(blocks).sum(axis=2)
+    samples = np.where(np.isfinite(cropped) & (cropped > 0), cropped, np.inf)  # invalid sorts last
+    ordered = _sorted_samples(_block_samples(samples, factor))  # f*f of [h, w], ascending
+    count = np.isfinite(ordered[0]).astype(np.int64)
+    in_nearest = np.isfinite(ordered[0])
+    total = np.where(in_nearest, ordered[0], 0.0)
+    size = in_nearest.astype(np.int64)
     with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = blocks[..., 1:] / blocks[..., :-1]
-    is_break = ratio > 1.0 + edge_gap  # inf / finite breaks too; inf / inf is nan -> False
-    cluster = np.concatenate([np.zeros_like(is_break[..., :1]), np.cumsum(is_break, axis=2) > 0], axis=2)
-    in_nearest = ~cluster & np.isfinite(blocks)
-    size = in_nearest.sum(axis=2)
-    total = np.where(in_nearest, blocks, 0.0).sum(axis=2)
+        for previous, sample in zip(ordered[:-1], ordered[1:]):
+            finite = np.isfinite(sample)
+            count += finite
+            # a break (inf / finite too) ends the nearest cluster; inf / inf is nan -> no break, but not finite
+            in_nearest &= finite & ~(sample / previous > 1.0 + edge_gap)
+            total += np.where(in_nearest, sample, 0.0)
+            size += in_nearest
     needed = max(1, math.ceil(min_valid_fraction * factor * factor))
     out = np.where((count >= needed) & (size > 0), total / np.maximum(size, 1), 0.0)
     return out.astype(np.float32)
