@@ -66,7 +66,6 @@ class Stages:
     observer: Observer = field(default_factory=Observer)
     hooks: PipelineHooks = field(default_factory=PipelineHooks)
     frontend: Frontend | None = None
-    frontend: Frontend | None = None
 
     @classmethod
     def build(cls, config: Config, sequence: RGBDSequence, device: torch.device, hooks: PipelineHooks | None = None,
@@ -75,8 +74,8 @@ class Stages:
         capacity = config.keyframes.window_size + config.keyframes.random_past + 2
         loop = (LoopCloser(config.loop, verification_hook=hooks.loop_verification, observer=observer)
                 if config.loop.enabled else None)
-        observer.declare("tracking", "keyframe", "mapping", *(("loop", "pgo") if loop is not None else ()))
-        frames = FrameCache(sequence, device, capacity)
+        observer.declare("read", "tracking", "keyframe", "mapping", *(("loop", "pgo") if loop is not None else ()))
+        frames = FrameCache(sequence, device, capacity, read_ahead=sequence.random_access)
         observer.attach(frames)
         frontend = Frontend(config.frontend) if config.frontend.method != "none" else None
         return cls(Tracker(config.tracking, config.render), Mapper(config.mapping, config.render), config.keyframes,
@@ -88,7 +87,9 @@ class Stages:
 def process_frame(stages: Stages, state: SLAMState, index: int, timestamp: float) -> FrameRecord:
     """Track, decide, map, close loops and record frame ``index`` (``timestamp`` seconds); returns its record."""
     observe = stages.observer.stage
-    frame = stages.frames[index]
+    with observe("read"):
+        frame = stages.frames[index]
+    stages.frames.prefetch(index + 1)
     with observe("tracking"):
         tracked = track_frame(stages.tracker, state, frame, stages.frames, stages.T_wc_first, stages.frontend)
         if stages.hooks.after_tracking is not None:
@@ -121,9 +122,12 @@ def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evalu
     state, observer = run.state, run.observer
     stages = Stages.build(config, run.sequence, run.device, hooks, observer)
     started, start_frame = time.perf_counter(), state.next_frame
-    with FrameLoop(run, config) as loop:
-        for index, timestamp in loop:
-            loop.frame_done(process_frame(stages, state, index, timestamp))
+    try:
+        with FrameLoop(run, config) as loop:
+            for index, timestamp in loop:
+                loop.frame_done(process_frame(stages, state, index, timestamp))
+    finally:
+        stages.frames.close()
     write_checkpoint(run.folder, state, config, observer)
     # The refinement shapes this session's outputs, not the checkpoint: a run resumed to go further starts from
     # the state the frames left (as an uninterrupted run would), and resuming a finished run repeats it exactly.

@@ -507,3 +507,52 @@ def test_dataset_distortion_undistorts_frames_and_rejects_bad_coefficients(tmp_p
         DatasetConfig(distortion=(0.1, 0.2, 0.3))
     with pytest.raises(ConfigError, match="dataset.distortion"):
         DatasetConfig(distortion=(0.1, float("nan"), 0.0, 0.0))
+
+
+# ----------------------------------------------------------------------------- the frame cache
+
+def test_frame_cache_reads_ahead_once_and_gives_the_same_frames(tmp_path):
+    from mipslam.datasets import FrameCache
+
+    write_replica(tmp_path / "rep")
+    sequence = make_sequence(DatasetConfig(kind="replica", path=str(tmp_path / "rep")))
+    assert sequence.random_access
+    reads = []
+
+    class Counting:  # the real reader, counting its reads
+        random_access = True
+
+        def __len__(self):
+            return len(sequence)
+
+        def __getitem__(self, index):
+            reads.append(index)
+            return sequence[index]
+
+    cache = FrameCache(Counting(), torch.device("cpu"), capacity=2, read_ahead=True)
+    try:
+        for index in range(len(sequence)):
+            frame = cache[index]
+            cache.prefetch(index + 1)  # past the end: nothing
+            cache.prefetch(index + 1)  # already on its way: nothing
+            assert torch.equal(frame.color, sequence[index].color) and torch.equal(frame.depth, sequence[index].depth)
+        assert sorted(reads) == list(range(len(sequence)))
+    finally:
+        cache.close()
+    assert torch.equal(cache[0].depth, sequence[0].depth)  # after close: read in the caller's thread
+
+
+def test_frame_cache_read_ahead_error_surfaces_when_the_frame_is_asked_for(tmp_path):
+    from mipslam.datasets import FrameCache
+
+    write_replica(tmp_path / "rep")
+    sequence = make_sequence(DatasetConfig(kind="replica", path=str(tmp_path / "rep")))
+    sequence.frame_paths[2][0].write_bytes(b"")  # frame 2's colour image is now empty
+    cache = FrameCache(sequence, torch.device("cpu"), capacity=2, read_ahead=True)
+    try:
+        cache.prefetch(2)
+        cache[1]
+        with pytest.raises(DatasetError, match="empty"):
+            cache[2]
+    finally:
+        cache.close()

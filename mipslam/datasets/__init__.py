@@ -11,6 +11,7 @@ truth is camera-to-world, OpenCV axes, float64.
 from __future__ import annotations
 
 from collections import OrderedDict
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
@@ -59,19 +60,43 @@ class FrameCache:
 
     Colour [H, W, 3] and depth [H, W] (metres) are on ``device``; a frame read again after it left the
     cache is read again from the sequence (same values: readers are deterministic).
+
+    ``read_ahead``: :meth:`prefetch` reads a frame on one background thread while the caller works (decoding
+    and downscaling release the GIL), so the frame loop does not wait for the disk. A camera's sequence must
+    not read ahead (its reader delivers the newest frame when asked). Errors surface when the frame is asked for.
     """
 
-    def __init__(self, sequence: RGBDSequence, device: torch.device, capacity: int):
+    def __init__(self, sequence: RGBDSequence, device: torch.device, capacity: int, *, read_ahead: bool = False):
         self.sequence, self.device, self.capacity = sequence, device, max(1, capacity)
         self._frames: OrderedDict[int, Frame] = OrderedDict()
+        self._reader = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mipslam-read") if read_ahead else None
+        self._pending: dict[int, Future] = {}
+
+    def _read(self, index: int) -> Frame:
+        frame = self.sequence[index]
+        return replace(frame, color=frame.color.to(self.device), depth=frame.depth.to(self.device))
+
+    def prefetch(self, index: int) -> None:
+        """Start reading frame ``index`` in the background (no-op without read-ahead, past the end, or when
+        the frame is cached or already on its way)."""
+        if (self._reader is None or not 0 <= index < len(self.sequence) or index in self._frames
+                or index in self._pending):
+            return
+        self._pending[index] = self._reader.submit(self._read, index)
 
     def __getitem__(self, index: int) -> Frame:
         if index in self._frames:
             self._frames.move_to_end(index)
             return self._frames[index]
-        frame = self.sequence[index]
-        frame = replace(frame, color=frame.color.to(self.device), depth=frame.depth.to(self.device))
+        pending = self._pending.pop(index, None)
+        frame = pending.result() if pending is not None else self._read(index)
         self._frames[index] = frame
         while len(self._frames) > self.capacity:
             self._frames.popitem(last=False)
         return frame
+
+    def close(self) -> None:
+        """Stop the background reader (frames on their way are finished and dropped)."""
+        if self._reader is not None:
+            self._reader.shutdown(wait=True, cancel_futures=True)
+            self._reader, self._pending = None, {}

@@ -43,6 +43,7 @@ class RGBDSequence(Protocol):
         rows where ``gt_valid`` is False hold the identity and must not be used
     gt_valid: bool [N]; all False when ``gt_T_wc`` is None
     ``seq[i]`` -> Frame (images read now); IndexError outside [0, N)
+    random_access: True when frames can be read in any order and ahead of use (files), False for a camera
     """
 
     name: str
@@ -50,6 +51,7 @@ class RGBDSequence(Protocol):
     intrinsics: Intrinsics
     depth_scale: float
     timestamp_kind: Literal["time", "index"]
+    random_access: bool
 
     @property
     def timestamps(self) -> np.ndarray: ...
@@ -101,6 +103,7 @@ class SequenceBase:
     name: str
     root: Path
     timestamp_kind: Literal["time", "index"]
+    random_access = True  # frames are files: any frame can be read at any time, also ahead of use
 
     def _setup(
         self,

@@ -109,6 +109,8 @@ class RealSenseSequence:
     can hold); from then on it is the number of frames delivered.
     """
 
+    random_access = False  # frames arrive in order from the device or the recording's playback
+
     timestamp_kind = "time"
     streaming = True  # frames arrive one after another; the length is not known before the stream ends
 

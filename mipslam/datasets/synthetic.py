@@ -64,6 +64,8 @@ def read_synth_meta(path: Path) -> dict[str, Any]:
 class SyntheticSequence:
     """A data_synth folder as an :class:`~mipslam.datasets.RGBDSequence` (delegates to the layout's reader)."""
 
+    random_access = True
+
     def __init__(self, root: str | Path, cfg: DatasetConfig | None = None):
         cfg = cfg or DatasetConfig(kind="synthetic", path=str(root))
         self.root = Path(root)
