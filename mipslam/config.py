@@ -282,6 +282,8 @@ class KeyframeConfig:
     covisibility_threshold: float = 0.9  # new keyframe when overlap with the last drops below
     translation_ratio: float = 0.1  # ... or translation > ratio * median scene depth
     rotation_deg: float = 15.0
+    # ... or the map renders less than this fraction of the frame's valid depth at the tracked pose (0 = off)
+    min_map_coverage: float = 0.0
     window_size: int = 8
     random_past: int = 2
     # Covisibility (mipslam/keyframes.py): a point is seen by both frames when their depths agree within this
@@ -292,6 +294,7 @@ class KeyframeConfig:
 
     def __post_init__(self):
         _check(0 < self.covisibility_threshold <= 1, "keyframes.covisibility_threshold", "must be in (0, 1]")
+        _check(0 <= self.min_map_coverage <= 1, "keyframes.min_map_coverage", "must be in [0, 1] (0 = off)")
         _check(self.covisibility_depth_tolerance > 0, "keyframes.covisibility_depth_tolerance", "must be positive")
         _check(self.covisibility_pixel_stride >= 1, "keyframes.covisibility_pixel_stride", "must be >= 1")
         _check(0 <= self.window_min_overlap <= 1, "keyframes.window_min_overlap", "must be in [0, 1]")

@@ -13,8 +13,11 @@ Keyframe rule (thresholds from ``mipslam.config.KeyframeConfig``): the first fra
 keyframe; afterwards a frame is one when covisibility with the last keyframe drops below
 ``covisibility_threshold``, or the translation from the last keyframe exceeds
 ``translation_ratio`` times the scene's median depth (the last keyframe's median valid depth),
-or the rotation exceeds ``rotation_deg``. A frame without any valid depth never becomes a
-keyframe (nothing to map).
+or the rotation exceeds ``rotation_deg``, or the map covers less than ``min_map_coverage`` of
+the frame's valid-depth pixels (tracking's render at the tracked pose: the view shows surfaces
+no keyframe has mapped, which covisibility with the last keyframe alone misses when the view
+drifts slowly away from it). A frame without any valid depth never becomes a keyframe (nothing
+to map).
 
 Window: newest first; the newest ``keep_newest`` always stay, older ones leave when their
 overlap with the new keyframe falls below ``min_overlap`` and, beyond ``window_size``, the least
@@ -95,7 +98,7 @@ class KeyframeDecision:
     """Why a frame is (or is not) a keyframe, with the measured quantities.
 
     reasons: the criteria that fired, a subset of ("first", "covisibility", "translation",
-    "rotation"); ("no_valid_depth",) when the frame cannot be a keyframe.
+    "rotation", "coverage"); ("no_valid_depth",) when the frame cannot be a keyframe.
     """
 
     is_keyframe: bool
@@ -115,6 +118,7 @@ def decide_keyframe(
     last_keyframe_depth: torch.Tensor | None,  # [H2, W2] metres; None before the first keyframe
     last_keyframe_T_wc: torch.Tensor | None,  # [4, 4]
     last_keyframe_K: torch.Tensor | None = None,  # [3, 3]; default: same as K
+    map_coverage: float = math.nan,  # fraction of the frame's valid-depth pixels the map renders (NaN: unknown)
 ) -> KeyframeDecision:
     """Apply the keyframe rule of the module docstring (covisibility with ``config``'s tolerance and stride).
 
@@ -143,6 +147,8 @@ def decide_keyframe(
         reasons.append("translation")
     if rotation > config.rotation_deg:
         reasons.append("rotation")
+    if map_coverage < config.min_map_coverage:  # NaN compares False: unknown coverage never fires
+        reasons.append("coverage")
     return KeyframeDecision(bool(reasons), tuple(reasons), covis, translation, ratio, rotation, median)
 
 
@@ -218,16 +224,17 @@ def select_random_past(
 # ----------------------------------------------------------------------------- the steps in the frame loop
 
 def keyframe_decision(config: KeyframeConfig, state: "SLAMState", frames: "FrameCache", frame: "Frame",
-                      T_wc: torch.Tensor) -> KeyframeDecision:
-    """Whether ``frame``, tracked at ``T_wc`` [4, 4] (camera-to-world), becomes a keyframe: the rule of the
-    module docstring against the last keyframe of ``state`` (the first one when there is none)."""
+                      T_wc: torch.Tensor, map_coverage: float = math.nan) -> KeyframeDecision:
+    """Whether ``frame``, tracked at ``T_wc`` [4, 4] (camera-to-world) where the map covers ``map_coverage`` of
+    its valid depth, becomes a keyframe: the rule of the module docstring against the last keyframe of
+    ``state`` (the first one when there is none)."""
     last = state.last_keyframe_id()
     if last is None:
         return decide_keyframe(config, frame.depth, T_wc, frame.intrinsics.matrix(), None, None, None)
     record = state.keyframe_record(last)
     keyframe = frames[record.index]
     return decide_keyframe(config, frame.depth, T_wc, frame.intrinsics.matrix(), keyframe.depth, record.T_wc,
-                           keyframe.intrinsics.matrix())
+                           keyframe.intrinsics.matrix(), map_coverage)
 
 
 def insert_keyframe(config: KeyframeConfig, state: "SLAMState", frames: "FrameCache",

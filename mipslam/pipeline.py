@@ -96,7 +96,7 @@ def process_frame(stages: Stages, state: SLAMState, index: int, timestamp: float
             tracked = stages.hooks.after_tracking(index, tracked, state)
     with observe("keyframe"):
         is_keyframe = tracked.ok and keyframe_decision(stages.keyframes, state, stages.frames, frame,
-                                                       tracked.T_wc).is_keyframe
+                                                       tracked.T_wc, tracked.map_coverage).is_keyframe
     record = state.append_frame(index, timestamp, tracked, is_keyframe)
     if is_keyframe:
         with observe("mapping"):

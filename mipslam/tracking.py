@@ -54,6 +54,8 @@ class TrackingResult:
     valid_fraction: fraction of pixels in the depth term at the finest level
     ok:             False when tracking failed (the frame is flagged and not mapped)
     status:         "ok", "initial", "non_finite_loss", "too_few_valid_pixels" or "loss_jump"
+    map_coverage:   fraction of the frame's valid-depth pixels (finest level) that the map renders opaque
+                    (opacity >= tracking.opacity_threshold) at the returned pose; NaN when not rendered
     """
 
     T_wc: torch.Tensor
@@ -63,6 +65,7 @@ class TrackingResult:
     valid_fraction: float
     ok: bool
     status: str
+    map_coverage: float = math.nan
 
 
 def constant_velocity_prediction(T_wc_prev: torch.Tensor, T_wc_prev_tracked: torch.Tensor,
@@ -193,6 +196,7 @@ class Tracker:
         xi_best, exposure_best = best
         T_cw_best = se3_exp(xi_best.to(torch.float64)) @ T_cw_init
         valid_fraction = best_depth_pixels / max(1, full.depth.numel())
+        map_coverage = best_depth_pixels / max(1, int(full.target_masks.depth.sum()))
         final_loss = best_loss
         if not math.isfinite(final_loss):
             return self._failed(T_wc_init, iterations, "non_finite_loss", math.nan, valid_fraction)
@@ -202,7 +206,7 @@ class Tracker:
             return self._failed(T_wc_init, iterations, "loss_jump", final_loss, valid_fraction)
         T_wc = se3_inverse(T_cw_best.detach().to(torch.float64).cpu())
         exposure_out = torch.zeros(2) if exposure_best is None else exposure_best.detach().float().cpu()
-        return TrackingResult(T_wc, exposure_out, final_loss, iterations, valid_fraction, True, "ok")
+        return TrackingResult(T_wc, exposure_out, final_loss, iterations, valid_fraction, True, "ok", map_coverage)
 
     @torch.no_grad()
     def best_start(

@@ -140,3 +140,16 @@ def test_random_past_keyframes_are_deterministic_and_outside_the_window():
     assert draw(0, count=50) == tuple(range(16))
     assert draw(0, count=0) == ()
     assert select_random_past([1, 2], [1, 2], 2, torch.Generator().manual_seed(0)) == ()
+
+
+def test_a_view_the_map_covers_too_little_is_a_keyframe_even_at_full_covisibility():
+    config = KeyframeConfig(min_map_coverage=0.9)
+    # the camera rests on the last keyframe (covisibility 1) but the map renders only 80 % of its depth
+    thin = decide_keyframe(config, wall(), pose(), K, wall(), pose(), map_coverage=0.8)
+    assert thin.is_keyframe and thin.reasons == ("coverage",)
+    covered = decide_keyframe(config, wall(), pose(), K, wall(), pose(), map_coverage=0.95)
+    assert not covered.is_keyframe
+    unknown = decide_keyframe(config, wall(), pose(), K, wall(), pose())  # no render: the rule cannot fire
+    assert not unknown.is_keyframe
+    off = decide_keyframe(KeyframeConfig(), wall(), pose(), K, wall(), pose(), map_coverage=0.1)  # default 0: off
+    assert not off.is_keyframe
