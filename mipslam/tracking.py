@@ -98,8 +98,18 @@ class Tracker:
     def __init__(self, config: TrackingConfig, render_config: RenderConfig):
         self.config = config
         self.render_config = render_config
+        self._last_levels: tuple[Frame, list[_Level]] | None = None  # the pyramid of the frame tracked last
 
     def _levels(self, frame: Frame) -> list[_Level]:
+        """The frame's image pyramid and loss masks, coarse to fine; built once per frame (the start judge,
+        tracking and its retries all read it)."""
+        if self._last_levels is not None and self._last_levels[0] is frame:
+            return self._last_levels[1]
+        levels = self._build_levels(frame)
+        self._last_levels = (frame, levels)
+        return levels
+
+    def _build_levels(self, frame: Frame) -> list[_Level]:
         cfg = self.config
         finest = max(cfg.resolution_scale, min(1.0, cfg.min_width / frame.intrinsics.width))
         scales = [s * finest for s in cfg.coarse_to_fine if s < 1.0] + [finest]
