@@ -189,6 +189,8 @@ class TrackingConfig:
     min_width: int = 0
     use_exposure: bool = False
     opacity_threshold: float = 0.95  # pixels whose rendered opacity is below are ignored
+    # a pixel the map renders at this opacity or more counts as mapped (keyframes.min_map_coverage)
+    coverage_opacity: float = 0.5
     # The feature front-end's start replaces the motion model's only when the map renders it with a loss lower
     # by this fraction (Tracker.best_start).
     start_margin: float = 0.1
@@ -225,6 +227,7 @@ class TrackingConfig:
         _check(0 < self.depth_alpha_floor <= 1, "tracking.depth_alpha_floor", "must be in (0, 1]")
         _check(self.max_depth >= 0, "tracking.max_depth", "must be >= 0 metres (0 = no limit)")
         _check(0 <= self.alpha_color <= 1, "tracking.alpha_color", "must be in [0, 1]")
+        _check(0 < self.coverage_opacity <= 1, "tracking.coverage_opacity", "must be in (0, 1]")
         _check(self.lr_translation > 0 and self.lr_rotation > 0, "tracking.lr_*", "learning rates must be positive")
         _check(0 < self.lr_final_ratio <= 1, "tracking.lr_final_ratio", "must be in (0, 1] (1 = constant rate)")
         _check(self.rprop_max_step_ratio >= 1, "tracking.rprop_max_step_ratio", "must be >= 1")

@@ -54,8 +54,8 @@ class TrackingResult:
     valid_fraction: fraction of pixels in the depth term at the finest level
     ok:             False when tracking failed (the frame is flagged and not mapped)
     status:         "ok", "initial", "non_finite_loss", "too_few_valid_pixels" or "loss_jump"
-    map_coverage:   fraction of the frame's valid-depth pixels (finest level) that the map renders opaque
-                    (opacity >= tracking.opacity_threshold) at the returned pose; NaN when not rendered
+    map_coverage:   fraction of the frame's valid-depth pixels (finest level) where the map renders a surface
+                    (opacity >= tracking.coverage_opacity) at the returned pose; NaN when not rendered
     """
 
     T_wc: torch.Tensor
@@ -138,14 +138,16 @@ class Tracker:
         return levels
 
     def _loss(self, gaussians: ActivatedGaussians, T_cw: torch.Tensor, level: _Level, exposure: torch.Tensor | None):
+        """The loss of the map rendered at ``T_cw`` [4, 4] against ``level``, and the render's opacity [h, w]."""
         out = render_view(gaussians, T_cw, level.intrinsics, self.render_config, mode=self.config.render_mode,
                           pose_only=True)
         masks = level.target_masks.where_opaque(out.alpha, self.config.opacity_threshold)
         color = out.color if exposure is None else apply_affine_exposure(out.color, exposure[0], exposure[1])
-        return rgbd_l1_loss(color, out.depth, level.color, level.depth, alpha_color=self.config.alpha_color,
+        loss = rgbd_l1_loss(color, out.depth, level.color, level.depth, alpha_color=self.config.alpha_color,
                             masks=masks, depth_alpha=out.alpha if self.config.depth_normalise else None,
                             depth_alpha_floor=self.config.depth_alpha_floor,
                             depth_outlier_ratio=self.config.depth_outlier_ratio)
+        return loss, out.alpha.detach()
 
     def track(
         self,
@@ -171,8 +173,10 @@ class Tracker:
         optimizer = _pose_optimizer(cfg, groups)
 
         iterations = 0
-        # The lowest full-resolution loss seen, its depth-pixel count, and the pose (and exposure) it was seen at.
-        best_loss, best_depth_pixels, best = math.inf, 0, (torch.zeros(6, dtype=dtype, device=device), None)
+        # The lowest full-resolution loss seen, its depth-pixel count, the valid-depth pixels the map renders there
+        # (opacity >= coverage_opacity), and the pose (and exposure) it was seen at.
+        best_loss, best_depth_pixels, best_covered = math.inf, 0, 0
+        best = (torch.zeros(6, dtype=dtype, device=device), None)
         levels = self._levels(frame)
         full = levels[-1]  # the finest level (tracking.resolution_scale) is last and gets at least half the iterations
         base_lrs = [group["lr"] for group in optimizer.param_groups]
@@ -187,11 +191,12 @@ class Tracker:
                         group["lr"] = base * decay ** i
                 xi = torch.cat([rho, phi])
                 T_cw = (se3_exp(xi.to(torch.float64)) @ T_cw_init).to(dtype)
-                loss = self._loss(gaussians, T_cw, level, exposure)
+                loss, alpha = self._loss(gaussians, T_cw, level, exposure)
                 if not torch.isfinite(loss.total):
                     return self._failed(T_wc_init, iterations, "non_finite_loss", math.nan, 0.0)
                 if level is full and float(loss.total.detach()) < best_loss:
                     best_loss, best_depth_pixels = float(loss.total.detach()), loss.num_depth_pixels
+                    best_covered = int(((alpha >= cfg.coverage_opacity) & level.target_masks.depth).sum())
                     best = (xi.detach().clone(), None if exposure is None else exposure.detach().clone())
                 optimizer.zero_grad(set_to_none=True)
                 loss.total.backward()
@@ -206,7 +211,7 @@ class Tracker:
         xi_best, exposure_best = best
         T_cw_best = se3_exp(xi_best.to(torch.float64)) @ T_cw_init
         valid_fraction = best_depth_pixels / max(1, full.depth.numel())
-        map_coverage = best_depth_pixels / max(1, int(full.target_masks.depth.sum()))
+        map_coverage = best_covered / max(1, int(full.target_masks.depth.sum()))
         final_loss = best_loss
         if not math.isfinite(final_loss):
             return self._failed(T_wc_init, iterations, "non_finite_loss", math.nan, valid_fraction)
@@ -243,7 +248,7 @@ class Tracker:
         for T_wc in candidates:
             T_cw = se3_inverse(T_wc.to(torch.float64)).to(device=device, dtype=dtype)
             subset = frustum_subset(gaussians, T_cw, frame.intrinsics, self.render_config)
-            loss = self._loss(subset, T_cw, level, None)
+            loss, _ = self._loss(subset, T_cw, level, None)
             valid = loss.num_depth_pixels / max(1, level.depth.numel())
             value = float(loss.total)
             losses.append(value if math.isfinite(value) and valid >= self.config.min_valid_fraction else math.inf)

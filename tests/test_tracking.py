@@ -180,3 +180,19 @@ def test_relocalisation_runs_above_the_loss_ratio_and_accepts_the_configured_jum
     high = replace(usual, loss=0.05)  # 5x the running level, above the ratio 2
     assert relocalise(tracker, state, frame, {0: frame}, gaussians, high) is high  # the alignment was refused
     assert [(o.max_correction_m, o.max_correction_deg) for o in asked] == [(0.3, 20.0)]
+
+
+def test_map_coverage_is_the_share_of_valid_depth_the_map_renders(one_frame_map):
+    # The map built from frame 0 covers frame 0; with the Gaussians of the image's left half removed it
+    # covers only about the right half, which is what keyframes.min_map_coverage reads.
+    seq, config, sequence, gaussians = one_frame_map
+    frame, T_wc_true = sequence[0], sequence.gt_T_wc[0]
+    settings = tiny_config(seq, "tracking.iterations=4").tracking
+    whole = Tracker(settings, config.render).track(gaussians, frame, T_wc_true, running_loss=None)
+    assert whole.ok and whole.map_coverage > 0.95
+    u = (gaussians.means - T_wc_true[:3, 3].float()) @ T_wc_true[:3, :3].float()  # camera frame, OpenCV axes
+    right = u[:, 0] / u[:, 2] > 0.0  # right of the optical axis (the principal point is near the centre)
+    half = type(gaussians)(*(t[right] for t in (gaussians.means, gaussians.quats, gaussians.scales,
+                                                gaussians.opacities, gaussians.colors)))
+    result = Tracker(settings, config.render).track(half, frame, T_wc_true, running_loss=None)
+    assert 0.3 < result.map_coverage < 0.7, result.map_coverage
