@@ -688,14 +688,14 @@ def _list_scenarios() -> int:
 
 
 def _cmd_bench(args) -> int:
+    if args.list_scenarios:
+        return _list_scenarios()
+    if args.scenario is not None:  # before torch loads: a scenario may set the thread environment first
+        return _cmd_bench_scenario(args)
     from mipslam.bench import (BenchSpec, LocalExecutor, RayExecutor, default_out_dir, parse_presets, parse_sweep,
                                resolve_target, run_bench)
     from mipslam.bench.peers import parse_peer_sets, parse_peers
 
-    if args.list_scenarios:
-        return _list_scenarios()
-    if args.scenario is not None:
-        return _cmd_bench_scenario(args)
     if args.smoke:
         raise _UsageError("mipslam bench: --smoke goes with --scenario NAME (see 'mipslam bench --help')")
     if args.train_vocab is not None:

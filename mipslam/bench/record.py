@@ -1,4 +1,4 @@
-"""One record format for every benchmark: ``mipslam bench`` and the scenario scripts in ``benchmarks/``.
+"""One record format for every benchmark scenario (``mipslam bench --scenario NAME``, :mod:`mipslam.bench.scenarios`).
 
 A record is a JSON file ``OUT/NAME.json`` (and, when the benchmark has a table, ``OUT/NAME.md``):
 

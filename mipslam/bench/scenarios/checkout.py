@@ -14,10 +14,10 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+from mipslam.config import CONFIG_DIR as CONFIGS
 from mipslam.errors import MipslamError
 
 REPO = Path(__file__).resolve().parents[3]  # the checkout: mipslam/bench/scenarios/ -> the repository root
-CONFIGS = REPO / "configs"
 SHARED_DATA = REPO.parent / "shared" / "data"
 
 
