@@ -1,8 +1,8 @@
 """Aliasing, measured: PSNR of point / mip / ewa / eaa against the exact pixel integral.
 
 Scene: many small, textured-like Gaussians (random colour, opacity, anisotropy and orientation) on a
-slanted surface in front of the camera, sized so that at the *native* resolution (``--width`` x
-``--height``) their projected standard deviations are 0.3 .. 1.5 px ("pixel-sized").
+slanted surface in front of the camera, sized so that at the *native* resolution (``aliasing.width`` x
+``aliasing.height``) their projected standard deviations are 0.3 .. 1.5 px ("pixel-sized").
 
 For every scale s in 1/8, 1/4, 1/2, 1 of the native resolution (intrinsics scaled with the
 pixel-centre convention of :meth:`mipslam.types.Intrinsics.scaled`):

@@ -9,7 +9,7 @@ reference run, then per trial:
 2. SIGKILL it at a seeded random moment. Trials cycle through four strategies so that kills land
    in every part of the run: ``time`` (once a random frame has started, a uniform delay of up to
    the reference's median frame time), ``tracking``, ``mapping`` and ``checkpoint`` (wait until the child has
-   entered that phase for the n-th time, n drawn at random, then kill at once). ``--ctrl-c N`` adds
+   entered that phase for the n-th time, n drawn at random, then kill at once). ``kill_resume.ctrl_c=N`` adds
    N trials that send SIGINT (Ctrl-C) instead, during ``mapping``, ``tracking`` or ``checkpoint``:
    mipslam must exit with code 130 after saving a checkpoint that resumes to the same result;
 3. ``mipslam run CONFIG --resume RUN`` (or, when the child died before its first checkpoint was

@@ -1,6 +1,6 @@
 """Benchmark: a long run on a data_synth loop sequence that revisits the same room (docs/robustness.md, "Long runs").
 
-The sequence is data_synth's ``loop`` trajectory at 80x60 (``--laps`` laps; by default at least 2
+The sequence is data_synth's ``loop`` trajectory at 80x60 (``long_run.laps`` laps; by default at least 2
 and as many as keep at least 240 frames per lap, where the camera looks outwards and turns a full
 360 degrees: 2 laps for 500 frames, 8 for 2000). The first lap covers the room and every later lap
 revisits it. (With fewer than 240 frames per lap, e.g. 100 frames, each lap sweeps the +x wall.) ``mipslam`` runs it with

@@ -1,7 +1,7 @@
 """How cost grows with the work: renderer time against Gaussian count and against
 pixel count, PGO time against keyframe count, each with the fitted log-log exponent.
 
-Renderer (``rasterize``, cpu backend, ``eaa`` with the default options, ``--threads`` torch threads):
+Renderer (``rasterize``, cpu backend, ``eaa`` with the default options, ``scaling.threads`` torch threads):
 
 * *forward*: one call under ``torch.no_grad()`` (what evaluation and the map checks do);
 * *pose-only forward+backward*: ``pose_only=True`` with the view matrix requiring a gradient and the
