@@ -625,8 +625,9 @@ def _scenario_request(args):
     name = args.scenario
     if name not in SCENARIOS:
         close = difflib.get_close_matches(name, SCENARIOS, n=1)
-        raise _UsageError(f"mipslam bench: --scenario {name}: unknown; {f'did you mean {close[0]!r}? ' if close else ''}"
-                          f"choose one of {', '.join(SCENARIOS)} (mipslam bench --list-scenarios)")
+        hint = f"did you mean {close[0]!r}? " if close else ""
+        raise _UsageError(f"mipslam bench: --scenario {name}: unknown; {hint}choose one of {', '.join(SCENARIOS)} "
+                          "(mipslam bench --list-scenarios)")
     given = [flag for flag, value in (("SEQUENCE_OR_CONFIG", args.target), ("--presets", args.presets),
                                       ("--sweep", args.sweeps), ("--peers", args.peers),
                                       ("--train-vocab", args.train_vocab), ("--ray", args.ray)) if value]
@@ -701,7 +702,8 @@ def _cmd_bench(args) -> int:
     if args.train_vocab is not None:
         return _cmd_bench_vocab(args)
     if args.target is None:
-        raise _UsageError("mipslam bench: give SEQUENCE_OR_CONFIG (or --train-vocab FILE) (see 'mipslam bench --help')")
+        raise _UsageError("mipslam bench: give SEQUENCE_OR_CONFIG, --scenario NAME (--list-scenarios) or "
+                          "--train-vocab FILE (see 'mipslam bench --help')")
     target = resolve_target(args.target)
     options = parse_peer_sets(args.peer_sets)
     if args.vocab is not None:
