@@ -57,6 +57,7 @@ from mipslam.errors import MipslamError
 log = logging.getLogger(__name__)
 
 MALLOC_ENV = {"MALLOC_MMAP_THRESHOLD_": "4294967296", "MALLOC_TRIM_THRESHOLD_": "4294967296"}
+MODULE = "mipslam.bench.scenarios.render_speed"  # the child processes run it with -m (as __main__ inside them)
 
 
 @dataclass(frozen=True)
@@ -162,7 +163,7 @@ def _status_kib(status: Path, key: str) -> int:
 
 
 def measure_memory(args, backend):
-    cmd = [sys.executable, "-m", __name__, "--memory-child", backend, json.dumps(dataclasses.asdict(args))]
+    cmd = [sys.executable, "-m", MODULE, "--memory-child", backend, json.dumps(dataclasses.asdict(args))]
     result = subprocess.run(cmd, capture_output=True, text=True, env=_child_environment(os.environ), timeout=3600,
                             check=False)
     if result.returncode != 0:
@@ -303,12 +304,11 @@ def run(options: Options, out_dir: Path) -> ScenarioResult:
     if options.malloc_tuning and any(os.environ.get(k) != v for k, v in MALLOC_ENV.items()):
         # the whole measurement in a child process started with the allocator setting
         env = _child_environment({**os.environ, **MALLOC_ENV})
-        child = subprocess.run([sys.executable, "-m", __name__, "--measure", str(out_dir),
-                                json.dumps(dataclasses.asdict(options))], env=env, check=False,
-                               stderr=subprocess.PIPE, text=True)
+        child = subprocess.run([sys.executable, "-m", MODULE, "--measure", str(out_dir),
+                                json.dumps(dataclasses.asdict(options)), json.dumps(sys.argv)], env=env, check=False)
         if child.returncode != 0:
-            raise MipslamError(f"render_speed: the measuring process failed (exit {child.returncode}): "
-                               f"{child.stderr.strip().splitlines()[-1] if child.stderr.strip() else ''}")
+            raise MipslamError(f"render_speed: the measuring process failed (exit {child.returncode}; its messages "
+                               "are above)")
         from mipslam.bench.record import BenchmarkFiles
 
         files = BenchmarkFiles(out_dir / f"{RECORD_NAME}.json", out_dir / f"{RECORD_NAME}.md")
@@ -463,5 +463,7 @@ def _measure(args: Options, out_dir: Path) -> ScenarioResult:
 if __name__ == "__main__":  # the child processes: python -m mipslam.bench.scenarios.render_speed --measure|--memory-child
     if sys.argv[1] == "--memory-child":
         run_memory_child(Options(**_options_from_json(sys.argv[3])), sys.argv[2])
-    else:
-        _measure(Options(**_options_from_json(sys.argv[3])), Path(sys.argv[2]))
+    else:  # --measure OUT OPTIONS ARGV: the record names the command the user typed (ARGV)
+        out, options, sys.argv = Path(sys.argv[2]), Options(**_options_from_json(sys.argv[3])), json.loads(sys.argv[4])
+        logging.basicConfig(level=logging.INFO, format="mipslam: %(message)s")
+        _measure(options, out)
