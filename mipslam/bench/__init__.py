@@ -20,7 +20,15 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 from mipslam.errors import MipslamError
+
+if TYPE_CHECKING:
+    from mipslam.bench.execute import Executor, JobResult
+    from mipslam.bench.report import BenchFiles
+    from mipslam.bench.spec import BenchSpec, Setting
+    from mipslam.bench.summary import SettingSummary
 
 # The public names, imported on first use: ``import mipslam.bench`` (and its ``scenarios`` and ``record``)
 # stays free of torch, so a scenario can set the thread environment before torch and numpy load.

@@ -18,7 +18,9 @@ from mipslam.config import CONFIG_DIR as CONFIGS
 from mipslam.errors import MipslamError
 
 REPO = Path(__file__).resolve().parents[3]  # the checkout: mipslam/bench/scenarios/ -> the repository root
-SHARED_DATA = REPO.parent / "shared" / "data"
+SHARED_DATA = REPO.parent / "shared" / "data"  # the real clips beside the checkout (not part of it)
+
+__all__ = ["CONFIGS", "REPO", "SHARED_DATA", "import_test_helper", "optional_path", "parameters"]
 
 
 def import_test_helper(name: str) -> ModuleType:

@@ -319,7 +319,7 @@ def run(options: Options, out_dir: Path) -> ScenarioResult:
 def _measure(args: Options, out_dir: Path) -> ScenarioResult:
     torch = configure_threads(args.threads)
     from mipslam.render import cpu as cpu_backend
-    from mipslam.render import footprint, project_gaussians, rasterize
+    from mipslam.render import project_gaussians, rasterize
     from mipslam.bench.record import write_benchmark
     from mipslam.render.rasterize_torch import FootprintSettings
     from mipslam.render import RenderOptions
