@@ -83,6 +83,15 @@ def test_cli_exit_codes_for_bad_requests(tmp_path, capsys):
     assert "not empty" in capsys.readouterr().err and (occupied / "earlier.txt").read_text() == "kept"
 
 
+def test_test_helpers_are_found_only_in_a_source_checkout(tmp_path, monkeypatch):
+    from mipslam.bench.scenarios import checkout
+
+    assert checkout.import_test_helper("synthetic_pose_graphs").make_synthetic_pose_graph
+    monkeypatch.setattr(checkout, "REPO", tmp_path)  # an installed copy: no tests/ beside the package
+    with pytest.raises(MipslamError, match="source checkout"):
+        checkout.import_test_helper("no_such_helper")
+
+
 # ----------------------------------------------------------------------------- every scenario, smallest size
 
 @pytest.mark.parametrize("name", list(SCENARIOS))
