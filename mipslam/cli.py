@@ -14,6 +14,8 @@ errors into exit codes (0 success, 1 unexpected failure, 2 usage/config/data err
                   [--threads 2] [--max-frames N] [--set k=v]... [--out DIR] [--jobs N | --ray [ADDRESS]]
                   [--peers open3d,orbslam3 [--vocab FILE] [--peers-only] [--peer-repeat N] [--peer-set k=v]...]
     mipslam bench --train-vocab FILE --vocab-images DIR [DIR...] [--vocab-k 10] [--vocab-levels 5]
+    mipslam bench --scenario NAME [--out DIR] [--smoke] [--threads N] [--set NAME.KEY=VALUE]... [--set k=v]...
+    mipslam bench --list-scenarios
 """
 from __future__ import annotations
 
@@ -180,7 +182,8 @@ def _build_parser() -> argparse.ArgumentParser:
     be.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="override a config value in every setting (repeatable; wins over --threads and --max-frames)")
     be.add_argument("--repeat", type=int, default=3, help="runs per setting (default 3; medians and spread over them)")
-    be.add_argument("--threads", type=int, default=2, help="torch threads per run (run.threads, default 2)")
+    be.add_argument("--threads", type=int, default=None,
+                    help="torch threads per run (run.threads, default 2); with --scenario: the scenario's threads")
     be.add_argument("--seed", type=int, default=0, help="run.seed of every run (default 0)")
     be.add_argument("--max-frames", type=int, default=None, help="process at most N frames of the sequence")
     be.add_argument("--timeout", type=float, default=3600.0, metavar="S",
@@ -205,6 +208,13 @@ def _build_parser() -> argparse.ArgumentParser:
                        help="DBoW2 ORB vocabulary for orbslam3 (make one with --train-vocab)")
     peers.add_argument("--peer-set", dest="peer_sets", action="append", default=[], metavar="PEER.KEY=VALUE",
                        help="a peer option, e.g. orbslam3.realtime=false or open3d_dense.voxel_size_m=0.01 (repeatable)")
+    scenarios = be.add_argument_group("benchmark scenarios (docs/bench.md; no SEQUENCE_OR_CONFIG)")
+    scenarios.add_argument("--scenario", default=None, metavar="NAME",
+                           help="run one benchmark scenario into --out (see --list-scenarios); --set NAME.KEY=VALUE "
+                                "sets one of its options, --set KEY=VALUE a config value of the runs it makes")
+    scenarios.add_argument("--list-scenarios", action="store_true", help="list the scenarios, one line each, and exit")
+    scenarios.add_argument("--smoke", action="store_true",
+                           help="run the scenario at its smallest size (checks that it runs; the numbers mean nothing)")
     vocab = be.add_argument_group("ORB vocabulary training (no SEQUENCE_OR_CONFIG)")
     vocab.add_argument("--train-vocab", type=Path, default=None, metavar="FILE",
                        help="train a DBoW2 ORB vocabulary (ORBvoc.txt format) into FILE and exit")
@@ -580,22 +590,128 @@ def _cmd_bench_vocab(args) -> int:
     return EXIT_OK
 
 
+_TRUE, _FALSE = ("true", "yes", "on", "1"), ("false", "no", "off", "0")
+
+
+def _scenario_value(name: str, key: str, text: str, kind: str):
+    """``text`` as a value of the scenario option ``key`` whose declared type is ``kind`` (int, float, bool, str
+    or tuple[T, ...] of them, comma-separated)."""
+    def one(item: str, item_kind: str):
+        try:
+            if item_kind == "bool":
+                if item.lower() not in _TRUE + _FALSE:
+                    raise ValueError
+                return item.lower() in _TRUE
+            return {"int": int, "float": float}.get(item_kind, str)(item)
+        except ValueError:
+            raise _UsageError(f"mipslam bench: --set {name}.{key}={text}: expected {kind}") from None
+
+    kind = kind.replace(" ", "")
+    if kind.startswith("tuple[") and kind.endswith(",...]"):
+        return tuple(one(item.strip(), kind[6:-5]) for item in text.split(",") if item.strip())
+    return one(text.strip(), kind)
+
+
+def _scenario_request(args):
+    """(scenario name, its Options) from the parsed ``mipslam bench --scenario`` arguments, without running it.
+
+    ``--set NAME.KEY=VALUE`` sets an option (``--smoke`` starts from the smallest size); any other ``--set KEY=VALUE``
+    is a config override of the runs the scenario makes (its ``config_overrides``)."""
+    import difflib
+    from dataclasses import fields
+
+    from mipslam.bench.scenarios import SCENARIOS, load_scenario
+
+    name = args.scenario
+    if name not in SCENARIOS:
+        close = difflib.get_close_matches(name, SCENARIOS, n=1)
+        hint = f"did you mean {close[0]!r}? " if close else ""
+        raise _UsageError(f"mipslam bench: --scenario {name}: unknown; {hint}choose one of {', '.join(SCENARIOS)} "
+                          "(mipslam bench --list-scenarios)")
+    given = [flag for flag, value in (("SEQUENCE_OR_CONFIG", args.target), ("--presets", args.presets),
+                                      ("--sweep", args.sweeps), ("--peers", args.peers),
+                                      ("--train-vocab", args.train_vocab), ("--ray", args.ray)) if value]
+    if given:
+        raise _UsageError(f"mipslam bench: --scenario takes no {', '.join(given)} (see 'mipslam bench --help')")
+    module = load_scenario(name)
+    kinds = {f.name: str(f.type) for f in fields(module.Options)}
+    values = dict(module.SMOKE) if args.smoke else {}
+    if args.threads is not None and "threads" in kinds:
+        values["threads"] = args.threads
+    config_overrides = []
+    for item in args.overrides:
+        key, sep, text = item.partition("=")
+        if not sep:
+            raise _UsageError(f"mipslam bench: --set {item}: expected KEY=VALUE")
+        if not key.startswith(f"{name}."):
+            if "config_overrides" not in kinds:
+                raise _UsageError(f"mipslam bench: --set {item}: scenario {name} takes no config values; its options "
+                                  f"are {', '.join(f'{name}.{k}' for k in kinds)}")
+            config_overrides.append(item)
+            continue
+        option = key[len(name) + 1:]
+        if option not in kinds:
+            close = difflib.get_close_matches(option, kinds, n=1)
+            hint = f"did you mean '{name}.{close[0]}'? " if close else ""
+            raise _UsageError(f"mipslam bench: --set {item}: {name} has no option {option!r}; {hint}its options are "
+                              f"{', '.join(kinds)}")
+        values[option] = _scenario_value(name, option, text, kinds[option])
+    if config_overrides:
+        values["config_overrides"] = (*values.get("config_overrides", ()), *config_overrides)
+    return name, module.Options(**values)
+
+
+def _cmd_bench_scenario(args) -> int:
+    from mipslam.bench.scenarios import default_scenario_out_dir, run_scenario
+
+    name, options = _scenario_request(args)
+    if args.threads is not None and not hasattr(options, "threads"):
+        import torch
+
+        torch.set_num_threads(args.threads)
+    result = run_scenario(name, options, args.out or default_scenario_out_dir(name))
+    print(result.summary)
+    written = [result.files.json, *([result.files.markdown] if result.files.markdown else []), *result.plots]
+    print(f"results: {', '.join(str(p) for p in written)}")
+    if not result.passed:
+        print(f"error: scenario {name}: a check failed (see {result.files.markdown})", file=sys.stderr)
+        return EXIT_FAILURE
+    return EXIT_OK
+
+
+def _list_scenarios() -> int:
+    from mipslam.bench.scenarios import SCENARIOS
+
+    width = max(len(name) for name in SCENARIOS)
+    for info in SCENARIOS.values():
+        print(f"{info.name:<{width}}  {info.summary}{' (source checkout)' if info.needs_checkout else ''}")
+    return EXIT_OK
+
+
 def _cmd_bench(args) -> int:
+    if args.list_scenarios:
+        return _list_scenarios()
+    if args.scenario is not None:  # before torch loads: a scenario may set the thread environment first
+        return _cmd_bench_scenario(args)
     from mipslam.bench import (BenchSpec, LocalExecutor, RayExecutor, default_out_dir, parse_presets, parse_sweep,
                                resolve_target, run_bench)
     from mipslam.bench.peers import parse_peer_sets, parse_peers
 
+    if args.smoke:
+        raise _UsageError("mipslam bench: --smoke goes with --scenario NAME (see 'mipslam bench --help')")
     if args.train_vocab is not None:
         return _cmd_bench_vocab(args)
     if args.target is None:
-        raise _UsageError("mipslam bench: give SEQUENCE_OR_CONFIG (or --train-vocab FILE) (see 'mipslam bench --help')")
+        raise _UsageError("mipslam bench: give SEQUENCE_OR_CONFIG, --scenario NAME (--list-scenarios) or "
+                          "--train-vocab FILE (see 'mipslam bench --help')")
     target = resolve_target(args.target)
     options = parse_peer_sets(args.peer_sets)
     if args.vocab is not None:
         options = parse_peer_sets([f"orbslam3.vocabulary={args.vocab.expanduser().resolve()}"], options)
     spec = BenchSpec(target=target, out_dir=args.out or default_out_dir(target), presets=parse_presets(args.presets),
                      sweeps=tuple(parse_sweep(s) for s in args.sweeps), overrides=tuple(args.overrides),
-                     repeat=args.repeat, threads=args.threads, seed=args.seed, max_frames=args.max_frames,
+                     repeat=args.repeat, threads=2 if args.threads is None else args.threads, seed=args.seed,
+                     max_frames=args.max_frames,
                      timeout_s=args.timeout, peers=parse_peers(args.peers), peer_repeat=args.peer_repeat,
                      peer_python=args.peer_python or sys.executable, peer_options=options,
                      run_mipslam=not args.peers_only)

@@ -1,4 +1,4 @@
-"""Noisy synthetic pose graphs with exact ground truth (for tests and benchmarks/bench_pgo.py).
+"""Noisy synthetic pose graphs with exact ground truth (for tests and the pgo and scaling benchmark scenarios).
 
 The camera runs ``laps`` times around a circle (radius ``radius`` m) with a gentle height and
 pitch oscillation. Odometry edges join consecutive keyframes; their measurements are the true

@@ -1,15 +1,14 @@
 """Interrupted runs (docs/robustness.md): ``mipslam run`` killed with SIGKILL at chosen moments (inside tracking,
 mapping and a checkpoint write) and resumed gives exactly the uninterrupted run; Ctrl-C inside
-mapping too. The trials are those of benchmarks/robustness_kill_resume.py (which runs 20 and more),
+mapping too. The trials are those of the kill_resume benchmark scenario (which runs 20 and more),
 with a fixed seed; the reference and the resumes run in this process to save interpreter start-ups."""
 from __future__ import annotations
 
 import random
 
 import pytest
-from benchmark_loader import load_benchmark
 
-kill_resume = load_benchmark("robustness_kill_resume")
+from mipslam.bench.scenarios import kill_resume
 
 
 @pytest.fixture(scope="module")

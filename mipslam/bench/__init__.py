@@ -6,30 +6,50 @@ Pieces (each usable alone, most of them pure):
 * :mod:`~mipslam.bench.execute`  how: :func:`execute_job` (``mipslam run`` + ``mipslam eval`` child
   processes), :class:`LocalExecutor` (default, sequential), :class:`RayExecutor` (``--ray``), :func:`run_jobs`;
 * :mod:`~mipslam.bench.summary`  statistics: :func:`summarize`, :func:`pareto_front`, :func:`fit_power_law`;
-* :mod:`~mipslam.bench.report`   files: :func:`write_outputs` (bench.json, bench.md, bench.png).
+* :mod:`~mipslam.bench.report`   files: :func:`write_outputs` (bench.json, bench.md, bench.png);
+* :mod:`~mipslam.bench.scenarios` the project's other benchmarks (``mipslam bench --scenario NAME``), each
+  writing its record through :mod:`~mipslam.bench.record`.
 
 :func:`run_bench` chains them. docs/bench.md describes the protocol.
 """
 from __future__ import annotations
 
+import importlib
 import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-from mipslam.bench.execute import Executor, JobResult, LocalExecutor, RayExecutor, execute_job, run_jobs
-from mipslam.bench.report import BenchFiles, machine_info, write_outputs
-from mipslam.bench.spec import (BenchSpec, Job, Setting, Sweep, Target, check_out_dir, default_out_dir,
-                                parse_presets, parse_sweep, plan_jobs, plan_settings, resolve_target)
-from mipslam.bench.summary import PowerLaw, SettingSummary, Spread, fit_power_law, pareto_front, spread, summarize
+from typing import TYPE_CHECKING
+
 from mipslam.errors import MipslamError
 
-__all__ = [
-    "BenchFiles", "BenchOutcome", "BenchSpec", "Executor", "Job", "JobResult", "LocalExecutor", "PowerLaw",
-    "RayExecutor", "Setting", "SettingSummary", "Spread", "Sweep", "Target", "default_out_dir", "execute_job",
-    "fit_power_law", "machine_info", "pareto_front", "parse_presets", "parse_sweep", "plan_jobs", "plan_settings",
-    "resolve_target", "run_bench", "run_jobs", "spread", "summarize", "write_outputs",
-]
+if TYPE_CHECKING:
+    from mipslam.bench.execute import Executor, JobResult
+    from mipslam.bench.report import BenchFiles
+    from mipslam.bench.spec import BenchSpec, Setting
+    from mipslam.bench.summary import SettingSummary
+
+# The public names, imported on first use: ``import mipslam.bench`` (and its ``scenarios`` and ``record``)
+# stays free of torch, so a scenario can set the thread environment before torch and numpy load.
+_EXPORTS = {
+    "mipslam.bench.execute": ("Executor", "JobResult", "LocalExecutor", "RayExecutor", "execute_job", "run_jobs"),
+    "mipslam.bench.report": ("BenchFiles", "machine_info", "write_outputs"),
+    "mipslam.bench.spec": ("BenchSpec", "Job", "Setting", "Sweep", "Target", "check_out_dir", "default_out_dir",
+                           "parse_presets", "parse_sweep", "plan_jobs", "plan_settings", "resolve_target"),
+    "mipslam.bench.summary": ("PowerLaw", "SettingSummary", "Spread", "fit_power_law", "pareto_front", "spread",
+                              "summarize"),
+}
+_MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
+
+__all__ = sorted([*_MODULE_OF, "BenchOutcome", "run_bench"])
+
+
+def __getattr__(name: str):
+    if name in _MODULE_OF:
+        return getattr(importlib.import_module(_MODULE_OF[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +97,11 @@ def _request(spec: BenchSpec, settings: list[Setting]) -> dict:
 
 def run_bench(spec: BenchSpec, executor: Executor | None = None) -> BenchOutcome:
     """Plan, run (``executor``, default sequential local processes), summarise and write the outputs."""
+    from mipslam.bench.execute import LocalExecutor, run_jobs
+    from mipslam.bench.report import machine_info, write_outputs
+    from mipslam.bench.spec import check_out_dir, plan_jobs, plan_settings
+    from mipslam.bench.summary import summarize
+
     out_dir = Path(spec.out_dir)
     check_out_dir(out_dir)
     settings = plan_settings(spec)

@@ -1,4 +1,4 @@
-"""One record format for every benchmark: ``mipslam bench`` and the scenario scripts in ``benchmarks/``.
+"""One record format for every benchmark scenario (``mipslam bench --scenario NAME``, :mod:`mipslam.bench.scenarios`).
 
 A record is a JSON file ``OUT/NAME.json`` (and, when the benchmark has a table, ``OUT/NAME.md``):
 
@@ -46,7 +46,9 @@ def benchmark_record(name: str, parameters: dict[str, Any], results: Any, *, thr
     """The record of one benchmark run (see the module docstring); ``machine`` defaults to this machine."""
     from mipslam.bench.report import machine_info
 
-    return {"format": RECORD_FORMAT, "benchmark": name, "command": [Path(sys.argv[0]).name, *sys.argv[1:]],
+    program = Path(sys.argv[0]).name
+    program = "mipslam" if program in ("__main__.py", "cli.py") else program  # python -m mipslam ...
+    return {"format": RECORD_FORMAT, "benchmark": name, "command": [program, *sys.argv[1:]],
             "machine": machine if machine is not None else machine_info(threads),
             "parameters": finite_or_none(parameters), "results": finite_or_none(results)}
 

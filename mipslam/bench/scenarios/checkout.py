@@ -1,0 +1,48 @@
+"""Helpers the scenarios share: the source checkout (configs/, tests/) and the record's parameters.
+
+``loop_closure``, ``pgo`` and ``scaling`` build their inputs with helpers of the test suite
+(``tests/fault_injection.py``, ``tests/synthetic_pose_graphs.py``): fault injection and synthetic pose graphs
+are test code, not part of the installed package. They are imported from the checkout the package runs from;
+an installed copy without ``tests/`` gets a one-line error saying so.
+"""
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import sys
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+from mipslam.config import CONFIG_DIR as CONFIGS
+from mipslam.errors import MipslamError
+
+REPO = Path(__file__).resolve().parents[3]  # the checkout: mipslam/bench/scenarios/ -> the repository root
+SHARED_DATA = REPO.parent / "shared" / "data"  # the real clips beside the checkout (not part of it)
+
+__all__ = ["CONFIGS", "REPO", "SHARED_DATA", "import_test_helper", "optional_path", "parameters"]
+
+
+def import_test_helper(name: str) -> ModuleType:
+    """``tests/<name>.py`` of the source checkout, as module ``name``."""
+    if name in sys.modules:
+        return sys.modules[name]
+    path = REPO / "tests" / f"{name}.py"
+    if not path.is_file():
+        raise MipslamError(f"{path}: not found; this scenario uses a helper of the test suite and runs only from a "
+                           "source checkout of mipslam (git clone), not from an installed package")
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # before exec: dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def parameters(options: Any) -> dict[str, Any]:
+    """A scenario's options as the record's ``parameters`` (tuples as lists)."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(options).items()}
+
+
+def optional_path(text: str) -> Path | None:
+    """An option that names a file or folder, "" for none."""
+    return Path(text).expanduser() if text else None
