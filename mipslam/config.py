@@ -131,7 +131,7 @@ RENDER_OPTION_KEYS = {
 class RenderConfig:
     """Renderer settings (DESIGN.md, renderer contract and EAA). The EAA constants and the near plane default
     to :class:`~mipslam.render.RenderOptions`' values (measured against `exact`: docs/renderer.md,
-    benchmarks/bench_aliasing.py), and are checked by its rules."""
+    `mipslam bench --scenario aliasing`), and are checked by its rules."""
 
     mode: Literal["point", "mip", "ewa", "eaa", "exact"] = "eaa"
     backend: Literal["auto", "torch", "cpu"] = "auto"
@@ -320,7 +320,7 @@ class MappingConfig:
     lr_poses: float = 1e-4
     alpha_color: float = 0.5
     isotropy_weight: float = 10.0
-    # Frequency-domain loss weight (docs/evaluation.md, benchmarks/bench_frequency_loss.py): 1000 gives sharper
+    # Frequency-domain loss weight (docs/evaluation.md, `mipslam bench --scenario frequency_loss`): 1000 gives sharper
     # training views and lower LPIPS (Replica room0 fast +0.9 dB) at a slightly higher ATE (0.17 -> 0.31 cm), so
     # the balanced and accurate presets turn it on and the base config (speed, tracking first) leaves it off.
     lambda_freq: float = 0.0
@@ -338,7 +338,7 @@ class MappingConfig:
     # also blocks real surfaces and costs tracking accuracy, so the base value is 1.
     add_min_distance_ratio: float = 1.0
     # A new Gaussian's opacity. With short mapping the map's rendered opacity stays below 1 (about 0.985 at 0.5), and
-    # the raw depth term then places the Gaussians about 1 / A - 1 too far; `fast` uses 0.98 (benchmarks/bench_tracking_bias.py).
+    # the raw depth term then places the Gaussians about 1 / A - 1 too far; `fast` uses 0.98 (`mipslam bench --scenario tracking_bias`).
     initial_opacity: float = 0.5
     prune_opacity: float = 0.005
     prune_max_sigma_px: float = 50.0  # std-dev larger than this many pixels (seen from the keyframe) is absurd
