@@ -43,7 +43,8 @@ class RGBDSequence(Protocol):
         rows where ``gt_valid`` is False hold the identity and must not be used
     gt_valid: bool [N]; all False when ``gt_T_wc`` is None
     ``seq[i]`` -> Frame (images read now); IndexError outside [0, N)
-    random_access: True when frames can be read in any order and ahead of use (files), False for a camera
+    random_access: True when frames can be read in any order and ahead of use (files); False for a stream
+        (a camera or a recording's playback), whose length is not known before it ends
     """
 
     name: str

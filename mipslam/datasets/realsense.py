@@ -109,10 +109,10 @@ class RealSenseSequence:
     can hold); from then on it is the number of frames delivered.
     """
 
-    random_access = False  # frames arrive in order from the device or the recording's playback
-
+    # frames arrive one after another from the device or the recording's playback; the length is not known
+    # before the stream ends
+    random_access = False
     timestamp_kind = "time"
-    streaming = True  # frames arrive one after another; the length is not known before the stream ends
 
     def __init__(self, cfg: DatasetConfig, *, live_camera: bool):
         self._rs = import_pyrealsense2()

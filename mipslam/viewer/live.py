@@ -132,7 +132,7 @@ class LiveViewer(Observer):
         frame = frames[record.index]
         elapsed = now - (self._first_call or now)
         fps = (self._frames_seen - 1) / elapsed if elapsed > 0 and self._frames_seen > 1 else None
-        total = 0 if getattr(sequence, "streaming", False) else len(sequence)  # a stream's length is unknown
+        total = len(sequence) if sequence.random_access else 0  # a stream's length is unknown
         headline = Headline(frame=state.next_frame, total_frames=total, frames_per_second=fps,
                             gaussians=len(gmap), keyframes=len(state.keyframe_frames))
         return Capture(
