@@ -173,10 +173,10 @@ def downscale_depth(
     cropped = crop_to_multiple(depth, factor).astype(np.float64)
     samples = np.where(np.isfinite(cropped) & (cropped > 0), cropped, np.inf)  # invalid sorts last
     ordered = _sorted_samples(_block_samples(samples, factor))  # f*f of [h, w], ascending
-    count = np.isfinite(ordered[0]).astype(np.int64)
     in_nearest = np.isfinite(ordered[0])
+    count = in_nearest.astype(np.int64)  # valid samples of the block
+    size = in_nearest.astype(np.int64)  # samples of its nearest cluster
     total = np.where(in_nearest, ordered[0], 0.0)
-    size = in_nearest.astype(np.int64)
     with np.errstate(invalid="ignore", divide="ignore"):
         for previous, sample in zip(ordered[:-1], ordered[1:]):
             finite = np.isfinite(sample)
