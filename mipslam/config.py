@@ -211,6 +211,9 @@ class TrackingConfig:
     # mip tracking kept the ATE within the seed spread; at 160x120 it cost 0.2-0.3 cm (docs/bench.md).
     # The balanced preset sets mip.
     render_mode: Literal["point", "mip", "ewa", "eaa", "exact"] | None = None
+    # Footprint mode of the coarse levels (coarse_to_fine; null: render_mode). They only bring the pose into the
+    # finest level's basin, and below ~1 px per splat EAA's renders cost as much as at twice the resolution.
+    coarse_render_mode: Literal["point", "mip", "ewa", "eaa", "exact"] | None = None
     # Depth term on the alpha-normalised rendered depth D / max(A, depth_alpha_floor) instead of the raw
     # D = sum T a z, which reads short wherever the map's opacity A < 1 and so pulls the camera towards
     # the surface (mipslam/losses/photometric.py; docs/mapping.md).

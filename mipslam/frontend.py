@@ -34,6 +34,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from mipslam.config import FrontendConfig
 from mipslam.types import Frame, Intrinsics
@@ -212,18 +213,26 @@ def _check_jump(result: RelativePose, T_rc_prior: torch.Tensor, options: Feature
 
 def _projection_gate(reference: FrameFeatures, current: FrameFeatures, intrinsics: Intrinsics,
                      T_rc: torch.Tensor, radius: float) -> np.ndarray:
-    """[M, N] bool: current keypoint m may match reference point n (projection at T_rc within the radius)."""
+    """[M, N] bool: current keypoint m may match reference point n (projection at T_rc within the radius).
+
+    The pairs within reach come from a k-d tree of the projections: the dense [M, N] distance table cost
+    more than the matching it gates (about 13 ms for 1000 x 1000 keypoints).
+    """
     T_cr = np.linalg.inv(T_rc.detach().cpu().numpy().astype(np.float64))
     points = reference.points_c @ T_cr[:3, :3].T + T_cr[:3, 3]  # [N, 3] current camera (NaN rows stay NaN)
     z = points[:, 2]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        u = intrinsics.fx * points[:, 0] / z + intrinsics.cx
-        v = intrinsics.fy * points[:, 1] / z + intrinsics.cy
+    allowed = np.zeros((len(current.keypoints), len(points)), dtype=bool)
+    in_front = np.flatnonzero(np.isfinite(points).all(axis=1) & (z > 0))
+    if len(in_front) == 0 or len(current.keypoints) == 0:
+        return allowed
+    projected = np.stack([intrinsics.fx * points[in_front, 0] / z[in_front] + intrinsics.cx,
+                          intrinsics.fy * points[in_front, 1] / z[in_front] + intrinsics.cy], axis=1)  # [N', 2] px
     limit = radius * max(intrinsics.width, intrinsics.height)
-    du = current.keypoints[:, None, 0] - u[None, :]
-    dv = current.keypoints[:, None, 1] - v[None, :]
-    with np.errstate(invalid="ignore"):
-        return (du * du + dv * dv <= limit * limit) & (z[None, :] > 0)
+    near = cKDTree(projected).query_ball_point(np.asarray(current.keypoints, dtype=np.float64), r=limit)
+    rows = np.repeat(np.arange(len(near)), [len(n) for n in near])
+    cols = in_front[np.concatenate([np.asarray(n, dtype=np.int64) for n in near])] if len(rows) else rows
+    allowed[rows, cols] = True
+    return allowed
 
 
 def _solve(reference: FrameFeatures, current: FrameFeatures, intrinsics: Intrinsics, options: FeatureOptions,

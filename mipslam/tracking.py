@@ -6,7 +6,8 @@ Adam or Rprop (``tracking.optimizer``) on the loss of DESIGN.md ("Losses", track
 ``alpha_c * mean(M_rgb |exposure(I) - I_gt|) + (1 - alpha_c) * mean(M_d |D - D_gt|)``,
 where the masks keep valid depth, rendered opacity >= ``opacity_threshold`` (pixels the map explains)
 and, for colour, pixels above an image-gradient percentile. Optional coarse-to-fine: the first
-levels run at reduced resolution (area-averaged targets, intrinsics scaled with the pixel-centre rule).
+levels run at reduced resolution (area-averaged targets, intrinsics scaled with the pixel-centre rule),
+optionally in a cheaper footprint mode (``tracking.coarse_render_mode``).
 The renderer's pose-only backward is used (the map is frozen), on the Gaussians that can reach the
 view from the motion-model pose (:func:`~mipslam.rendering.frustum_indices`, ``render.frustum_margin``).
 
@@ -90,6 +91,7 @@ class _Level:
     depth: torch.Tensor  # [h, w]
     target_masks: RGBDMasks  # [h, w] bool each: valid targets (and the gradient mask), before the opacity test
     iterations: int
+    render_mode: str | None  # footprint mode of this level's renders (None: render.mode)
 
 
 class Tracker:
@@ -134,12 +136,13 @@ class Tracker:
                 continue
             target_masks = rgbd_masks(color, depth, max_depth=cfg.max_depth,
                                       extra_color_mask=image_gradient_mask(color, cfg.gradient_mask_percentile))
-            levels.append(_Level(intrinsics, color, depth, target_masks, iterations))
+            mode = cfg.render_mode if scale == finest or cfg.coarse_render_mode is None else cfg.coarse_render_mode
+            levels.append(_Level(intrinsics, color, depth, target_masks, iterations, mode))
         return levels
 
     def _loss(self, gaussians: ActivatedGaussians, T_cw: torch.Tensor, level: _Level, exposure: torch.Tensor | None):
         """The loss of the map rendered at ``T_cw`` [4, 4] against ``level``, and the render's opacity [h, w]."""
-        out = render_view(gaussians, T_cw, level.intrinsics, self.render_config, mode=self.config.render_mode,
+        out = render_view(gaussians, T_cw, level.intrinsics, self.render_config, mode=level.render_mode,
                           pose_only=True)
         masks = level.target_masks.where_opaque(out.alpha, self.config.opacity_threshold)
         color = out.color if exposure is None else apply_affine_exposure(out.color, exposure[0], exposure[1])

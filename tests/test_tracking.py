@@ -159,6 +159,28 @@ def test_the_coarse_levels_get_the_configured_share_of_the_iterations(one_frame_
         assert levels[-1].intrinsics == sequence[0].intrinsics  # full resolution last
 
 
+def test_coarse_levels_render_in_the_coarse_mode_and_the_finest_in_the_tracking_mode(one_frame_map, monkeypatch):
+    _, config, sequence, gaussians = one_frame_map
+    settings = replace(config.tracking, iterations=6, coarse_to_fine=(0.5,), render_mode="eaa",
+                       coarse_render_mode="mip", convergence_threshold=0.0)
+    tracker = Tracker(settings, config.render)
+    assert [level.render_mode for level in tracker._levels(sequence[0])] == ["mip", "eaa"]
+    rendered = []
+    real_render = tracking.render_view
+
+    def recording(gaussians, T_cw, intrinsics, render_config, **kwargs):
+        rendered.append((intrinsics.width, kwargs["mode"]))
+        return real_render(gaussians, T_cw, intrinsics, render_config, **kwargs)
+
+    monkeypatch.setattr(tracking, "render_view", recording)
+    tracker.track(gaussians, sequence[0], sequence.gt_T_wc[0], running_loss=None)
+    width = sequence[0].intrinsics.width
+    assert rendered == [(width // 2, "mip")] * 3 + [(width, "eaa")] * 3
+    # unset, every level renders in the tracking mode
+    plain = Tracker(replace(settings, coarse_render_mode=None), config.render)
+    assert [level.render_mode for level in plain._levels(sequence[0])] == ["eaa", "eaa"]
+
+
 def test_relocalisation_runs_above_the_loss_ratio_and_accepts_the_configured_jump(one_frame_map, monkeypatch):
     _, config, sequence, gaussians = one_frame_map
     frame = sequence[0]
