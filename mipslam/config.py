@@ -399,6 +399,13 @@ class LoopConfig:
     odometry_sigma_m: float = 0.01
     odometry_sigma_deg: float = 0.5
     odometry_drift_ratio: float = 0.05
+    # A loop edge's covariance is the registration's plus this floor (standard deviations, per axis): Open3D's
+    # information claims millimetres, and a pose graph that believes it bends the odometry chain at its weakest
+    # link. 1 cm / 0.5 deg helped `balanced` on fr1_rpy (4.39 -> 3.73 cm) and cost `fast` there (2.79 -> 3.26 cm),
+    # the lap and the noisy loop unchanged (docs/tracking.md, "Loop closure"); 0 and 0 (the default): the
+    # registration's information alone.
+    loop_sigma_m: float = 0.0
+    loop_sigma_deg: float = 0.0
     # SA-PGO's two switches (on here; PGOOptions' defaults are the plain full-LM baseline they are measured against)
     spectral_edge_weighting: bool = True
     low_frequency_correction: bool = True
@@ -451,6 +458,7 @@ class LoopConfig:
         _check(self.odometry_sigma_m > 0, "loop.odometry_sigma_m", "must be positive (metres)")
         _check(self.odometry_sigma_deg > 0, "loop.odometry_sigma_deg", "must be positive (degrees)")
         _check(self.odometry_drift_ratio >= 0, "loop.odometry_drift_ratio", "must be >= 0")
+        _check(self.loop_sigma_m >= 0 and self.loop_sigma_deg >= 0, "loop.loop_sigma_*", "must be >= 0 (0 = no floor)")
 
 
 @dataclass(frozen=True)

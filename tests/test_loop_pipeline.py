@@ -269,8 +269,13 @@ def test_loop_edges_that_agree_with_the_poses_join_the_graph_without_an_optimisa
     # 0.3 mm / 0.01 deg of drift per keyframe: chi-square far above 12.6 (the registration claims about a
     # millimetre), but the residuals stay under the 2 cm / 1 deg floor, so the floor alone skips them.
     creeping = torch.tensor([0.0003, 0, 0, 0, 0.0002, 0], dtype=F64)
+    no_correction_floor = ("loop.min_correction_m=0", "loop.min_correction_deg=0")
     assert not any(optimised(closer_steps(drift_sequence, creeping)))
-    assert any(optimised(closer_steps(drift_sequence, creeping, "loop.min_correction_m=0", "loop.min_correction_deg=0")))
+    assert any(optimised(closer_steps(drift_sequence, creeping, *no_correction_floor)))
+    # With a 1 cm / 0.5 deg error floor on the loop edges (loop.loop_sigma_*) that drift is within the
+    # chi-square gate as well.
+    edge_floor = ("loop.loop_sigma_m=0.01", "loop.loop_sigma_deg=0.5")
+    assert not any(optimised(closer_steps(drift_sequence, creeping, *no_correction_floor, *edge_floor)))
     # Poses that drifted centimetres away from the loop measurements are optimised.
     assert any(optimised(closer_steps(drift_sequence, torch.tensor([0.004, 0, 0, 0, 0.01, 0], dtype=F64))))
 
@@ -295,6 +300,28 @@ def test_verification_rejects_a_correction_larger_than_the_odometry_can_have_dri
     assert not closer._within_expected_drift(verified(0.05, 11.6), chain).accepted  # 1.5 deg allowed
     off = LoopCloser(replace(config.loop, max_drift_sigmas=0.0))
     assert off._within_expected_drift(verified(0.19, 11.6), chain).accepted
+
+
+def test_a_loop_edge_is_never_more_certain_than_its_error_floor():
+    from mipslam.loop.closer import loop_information
+
+    # Open3D-like information: 1 mm and 0.05 deg standard deviations, with a translation-rotation coupling.
+    rng = torch.Generator().manual_seed(0)
+    basis = torch.linalg.qr(torch.randn(6, 6, generator=rng, dtype=F64))[0]
+    sigmas = torch.tensor([1e-3] * 3 + [math.radians(0.05)] * 3, dtype=F64)
+    covariance = basis @ torch.diag(sigmas**2) @ basis.T
+    information = torch.linalg.inv(covariance)
+    floored = loop_information(information, 0.01, 0.5)
+    floor = torch.diag(torch.tensor([0.01**2] * 3 + [math.radians(0.5) ** 2] * 3, dtype=F64))
+    torch.testing.assert_close(floored, torch.linalg.inv(covariance + floor))  # covariances add
+    assert torch.allclose(floored, floored.T)
+    assert float(torch.linalg.eigvalsh(floored).min()) > 0
+    # a singular registration information (a wall: one direction unobserved) stays singular there and finite
+    wall = torch.diag(torch.tensor([1e6, 1e6, 0.0, 1e5, 1e5, 1e5], dtype=F64))
+    floored_wall = loop_information(wall, 0.01, 0.5)
+    assert torch.isfinite(floored_wall).all() and abs(float(floored_wall[2, 2])) < 1e-9
+    assert float(floored_wall[0, 0]) < 1e4 < 1e6  # at most 1 / (1 cm)^2
+    assert loop_information(information, 0.0, 0.0) is information  # no floor: unchanged
 
 
 # ----------------------------------------------------------------------------- resume

@@ -248,6 +248,24 @@ def odometry_information(path_m: float, path_rad: float, quality: float, sigma_m
     return torch.diag(diagonal) * quality
 
 
+def loop_information(information: torch.Tensor, sigma_m: float, sigma_deg: float) -> torch.Tensor:
+    """Information of a loop edge whose measurement carries, besides the registration's own uncertainty, an error
+    floor of ``sigma_m`` (metres, per axis) and ``sigma_deg`` (degrees, per axis):
+    ``(Omega^-1 + D)^-1 = Omega - Omega (Omega + D^-1)^-1 Omega`` with ``D = diag(sigma_m^2 (x3), sigma_rad^2 (x3))``
+    (the form that holds for a singular ``Omega``).  information [6, 6] float64, order [rho, phi] -> [6, 6]
+
+    No floor (both 0): ``information`` unchanged.
+    """
+    if sigma_m <= 0 and sigma_deg <= 0:
+        return information
+    variances = torch.tensor([sigma_m**2] * 3 + [math.radians(sigma_deg) ** 2] * 3, dtype=torch.float64)
+    omega = information.to(torch.float64)
+    if bool((variances <= 0).any()):  # a floor on one half only: the other half keeps the registration's
+        variances = torch.where(variances > 0, variances, torch.full_like(variances, 1e-30))
+    inflated = omega - omega @ torch.linalg.solve(omega + torch.diag(1.0 / variances), omega)
+    return 0.5 * (inflated + inflated.T)
+
+
 def refresh_odometry(graph: PoseGraph) -> PoseGraph:
     """The graph with every odometry measurement set to the current relative pose ``T_i^-1 T_j``
     (loop measurements unchanged): optimising it distributes only the loop errors."""
@@ -328,7 +346,8 @@ class LoopCloser:
                 _finite_or_none(result.correction_deg), result.accepted,
                 "verified: loop edge added" if result.accepted else result.reason, result.time_s))
             if result.accepted:
-                graph = graph.add_edge(i, k, result.T_ij, result.information, "loop")
+                information = loop_information(result.information, self.config.loop_sigma_m, self.config.loop_sigma_deg)
+                graph = graph.add_edge(i, k, result.T_ij, information, "loop")
                 new_edges.append(graph.num_edges - 1)
         if reports:
             logger.info("keyframe %d: %d loop candidate(s), %d verified", k, len(reports), len(new_edges))
