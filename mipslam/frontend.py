@@ -228,10 +228,9 @@ def _projection_gate(reference: FrameFeatures, current: FrameFeatures, intrinsic
     projected = np.stack([intrinsics.fx * points[in_front, 0] / z[in_front] + intrinsics.cx,
                           intrinsics.fy * points[in_front, 1] / z[in_front] + intrinsics.cy], axis=1)  # [N', 2] px
     limit = radius * max(intrinsics.width, intrinsics.height)
-    near = cKDTree(projected).query_ball_point(np.asarray(current.keypoints, dtype=np.float64), r=limit)
-    rows = np.repeat(np.arange(len(near)), [len(n) for n in near])
-    cols = in_front[np.concatenate([np.asarray(n, dtype=np.int64) for n in near])] if len(rows) else rows
-    allowed[rows, cols] = True
+    pairs = cKDTree(np.asarray(current.keypoints, dtype=np.float64)).sparse_distance_matrix(
+        cKDTree(projected), limit, output_type="ndarray")  # (i: keypoint, j: projection, v: distance <= limit)
+    allowed[pairs["i"], in_front[pairs["j"]]] = True
     return allowed
 
 
