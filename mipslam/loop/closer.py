@@ -258,10 +258,10 @@ def loop_information(information: torch.Tensor, sigma_m: float, sigma_deg: float
     """
     if sigma_m <= 0 and sigma_deg <= 0:
         return information
+    # a floor on one half only: the other half's variance 1e-30 keeps the registration's information there
     variances = torch.tensor([sigma_m**2] * 3 + [math.radians(sigma_deg) ** 2] * 3, dtype=torch.float64)
+    variances = variances.clamp_min(1e-30)
     omega = information.to(torch.float64)
-    if bool((variances <= 0).any()):  # a floor on one half only: the other half keeps the registration's
-        variances = torch.where(variances > 0, variances, torch.full_like(variances, 1e-30))
     inflated = omega - omega @ torch.linalg.solve(omega + torch.diag(1.0 / variances), omega)
     return 0.5 * (inflated + inflated.T)
 
