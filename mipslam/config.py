@@ -203,6 +203,10 @@ class TrackingConfig:
     # Largest jump relocalisation accepts from the RGB-D alignment to the previous frame (a bump, dropped frames).
     relocalise_max_m: float = 1.0
     relocalise_max_deg: float = 45.0
+    # Where the feature front-end gives no start (texture-poor or repeated texture, a large motion), align the
+    # newest tracked frame to this one by dense RGB-D odometry (Open3D) from the motion model's pose; the render
+    # loss then judges that pose against the motion model's (Tracker.best_start). Bounded by relocalise_max_*.
+    dense_start: bool = False
     # Momentum of the running level of good tracking losses (exponential moving average) that the failure and
     # relocalisation ratios compare a frame's loss with.
     running_loss_momentum: float = 0.9

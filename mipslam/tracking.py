@@ -319,9 +319,18 @@ def track_frame(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "Fra
     if len(state.gaussian_map) == 0:
         return initial_result(start.T_wc)
     detached = state.gaussian_map.activated().detached()
-    T_wc_start = start.T_wc
-    if start.source == "features":  # the render loss judges between the motion model's pose and the features'
-        T_wc_start = (prediction, start.T_wc)[tracker.best_start(detached, frame, [prediction, start.T_wc])]
+    candidates = [prediction]  # the render loss judges between the motion model's pose and the others
+    if start.source == "features":
+        candidates.append(start.T_wc)
+    elif tracker.config.dense_start:
+        aligned = dense_start(tracker.config, state, frame, frames, prediction)
+        if aligned is not None:
+            candidates.append(aligned)
+    chosen = tracker.best_start(detached, frame, candidates)
+    if tracker.config.dense_start and start.source != "features":
+        log.debug("frame %d: features gave no start (%s); dense RGB-D start %s", frame.index, start.reason,
+                  ("failed its checks", "rejected by the render loss", "taken")[len(candidates) - 1 + chosen])
+    T_wc_start = candidates[chosen]
     result = tracker.track(detached, frame, T_wc_start, state.running_loss)
     result = relocalise_keyframes(tracker, frontend, state, frame, frames, detached, result)
     result = relocalise(tracker, state, frame, frames, detached, result)
@@ -374,22 +383,45 @@ def relocalise(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "Fram
             or result.loss <= ratio * running or not state.frames[-1].tracked):
         return result
     previous = state.frames[-1]
-    before = frames[previous.index]
-    T_wc_prev = previous.T_wc.to(torch.float64)
+    aligned = align_to_frame(cfg, frames[previous.index], previous.T_wc, frame, result.T_wc)
+    if aligned is None:
+        return result
+    retry = tracker.track(gaussians, frame, aligned, running)
+    if retry.ok and (not result.ok or retry.loss < result.loss):
+        log.info("frame %d: relocalised (tracking loss %.4f, %.1fx its running level; %.4f after an RGB-D "
+                 "alignment to frame %d)", frame.index, result.loss, result.loss / running, retry.loss, previous.index)
+        return retry
+    return result
+
+
+def dense_start(cfg: TrackingConfig, state: "SLAMState", frame: Frame, frames: "FrameCache",
+                prediction: torch.Tensor) -> torch.Tensor | None:
+    """A start for a frame the features could not place (texture-poor or repeated texture, a large motion):
+    the newest tracked frame aligned to it by dense RGB-D odometry from the motion model's ``prediction``
+    [4, 4] float64 (camera-to-world). Returns T_wc [4, 4] float64, or None when the alignment fails its checks.
+    Only with ``tracking.dense_start``; :meth:`Tracker.best_start` then judges it against the prediction."""
+    reference = next((f for f in reversed(state.frames) if f.tracked), None)
+    if reference is None:
+        return None
+    return align_to_frame(cfg, frames[reference.index], reference.T_wc, frame, prediction)
+
+
+def align_to_frame(cfg: TrackingConfig, reference: Frame, T_wc_reference: torch.Tensor, frame: Frame,
+                   T_wc_guess: torch.Tensor) -> torch.Tensor | None:
+    """``frame``'s pose T_wc [4, 4] float64 from Open3D's dense RGB-D odometry (coarse-to-fine hybrid term, as
+    loop verification uses) against ``reference`` at ``T_wc_reference`` [4, 4], started at ``T_wc_guess`` [4, 4].
+    None when Open3D is missing or the alignment fails its checks or moves further than
+    ``tracking.relocalise_max_m`` / ``relocalise_max_deg`` from the guess."""
+    T_wc_reference = T_wc_reference.to(torch.float64)
     options = RegistrationOptions(method="rgbd_odometry", pixel_stride=1, min_points=100,
                                   max_correction_m=cfg.relocalise_max_m, max_correction_deg=cfg.relocalise_max_deg)
     try:
-        aligned = register_rgbd_odometry(before.color, before.depth, frame.color, frame.depth, frame.intrinsics,
-                                         se3_inverse(T_wc_prev) @ result.T_wc.to(torch.float64), options)
-    except MipslamError as exc:  # Open3D unavailable: keep tracking's result
-        log.debug("relocalisation skipped: %s", exc)
-        return result
+        aligned = register_rgbd_odometry(reference.color, reference.depth, frame.color, frame.depth,
+                                         frame.intrinsics, se3_inverse(T_wc_reference) @ T_wc_guess.to(torch.float64),
+                                         options)
+    except MipslamError as exc:  # Open3D unavailable: no dense pose
+        log.debug("RGB-D alignment of frame %d skipped: %s", frame.index, exc)
+        return None
     if not aligned.accepted:
-        return result
-    retry = tracker.track(gaussians, frame, T_wc_prev @ aligned.T_ij, running)
-    if retry.ok and (not result.ok or retry.loss < result.loss):
-        log.info("frame %d: relocalised (tracking loss %.4f, %.1fx its running level; %.4f after a %.2f m, %.1f deg "
-                 "RGB-D alignment to frame %d)", frame.index, result.loss, result.loss / running, retry.loss,
-                 aligned.correction_m, aligned.correction_deg, previous.index)
-        return retry
-    return result
+        return None
+    return T_wc_reference @ aligned.T_ij
