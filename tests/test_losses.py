@@ -296,6 +296,7 @@ def test_a_translucent_map_pulls_the_camera_along_its_axis_only_with_the_raw_dep
     opacity = float(out.alpha.detach().mean())
     assert 0.6 < opacity < 0.8, opacity  # the map is translucent
     # T_cw = exp(rho): the camera sits at -rho, so a camera moved back (away from the plane) has rho_z > 0.
+    rho = rho.detach()
     if normalise:
         assert abs(float(rho[2])) < 3e-3, rho
     else:
