@@ -87,6 +87,10 @@ class SLAMState:
     def last_keyframe_id(self) -> int | None:
         return len(self.keyframe_frames) - 1 if self.keyframe_frames else None
 
+    def newest_tracked_frame(self) -> FrameRecord | None:
+        """The newest frame whose tracking succeeded (the reference of the next frame's start), or None."""
+        return next((f for f in reversed(self.frames) if f.tracked), None)
+
     def poses(self, *, as_tracked: bool = False) -> torch.Tensor:
         """All estimated poses so far (``as_tracked``: as tracking left them, ``FrameRecord.T_wc_tracked``).
         -> [F, 4, 4] float64"""

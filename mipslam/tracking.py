@@ -319,17 +319,19 @@ def track_frame(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "Fra
     if len(state.gaussian_map) == 0:
         return initial_result(start.T_wc)
     detached = state.gaussian_map.activated().detached()
-    candidates = [prediction]  # the render loss judges between the motion model's pose and the others
+    candidates = [prediction]  # the render loss judges between the motion model's pose and the other one
+    asks_dense = start.source != "features" and tracker.config.dense_start
     if start.source == "features":
         candidates.append(start.T_wc)
-    elif tracker.config.dense_start:
+    elif asks_dense:
         aligned = dense_start(tracker.config, state, frame, frames, prediction)
         if aligned is not None:
             candidates.append(aligned)
     chosen = tracker.best_start(detached, frame, candidates)
-    if tracker.config.dense_start and start.source != "features":
-        log.debug("frame %d: features gave no start (%s); dense RGB-D start %s", frame.index, start.reason,
-                  ("failed its checks", "rejected by the render loss", "taken")[len(candidates) - 1 + chosen])
+    if asks_dense:
+        outcome = ("failed its checks" if len(candidates) == 1 else
+                   "taken" if chosen == 1 else "rejected by the render loss")
+        log.debug("frame %d: features gave no start (%s); dense RGB-D start %s", frame.index, start.reason, outcome)
     T_wc_start = candidates[chosen]
     result = tracker.track(detached, frame, T_wc_start, state.running_loss)
     result = relocalise_keyframes(tracker, frontend, state, frame, frames, detached, result)
@@ -341,7 +343,7 @@ def frontend_start(frontend: Frontend | None, state: "SLAMState", frame: Frame, 
                    prediction: torch.Tensor) -> FrontendStart:
     """Tracking's start: the feature front-end against the newest tracked frame, or the motion model's
     ``prediction`` [4, 4] float64 (camera-to-world) when there is no front-end or no tracked frame."""
-    reference = next((f for f in reversed(state.frames) if f.tracked), None)
+    reference = state.newest_tracked_frame()
     if frontend is None or reference is None:
         return Frontend.motion_model(prediction)
     return frontend.start(frame, frames[reference.index], reference.T_wc, prediction)
@@ -400,7 +402,7 @@ def dense_start(cfg: TrackingConfig, state: "SLAMState", frame: Frame, frames: "
     the newest tracked frame aligned to it by dense RGB-D odometry from the motion model's ``prediction``
     [4, 4] float64 (camera-to-world). Returns T_wc [4, 4] float64, or None when the alignment fails its checks.
     Only with ``tracking.dense_start``; :meth:`Tracker.best_start` then judges it against the prediction."""
-    reference = next((f for f in reversed(state.frames) if f.tracked), None)
+    reference = state.newest_tracked_frame()
     if reference is None:
         return None
     return align_to_frame(cfg, frames[reference.index], reference.T_wc, frame, prediction)
