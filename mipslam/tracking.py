@@ -401,7 +401,8 @@ def dense_start(cfg: TrackingConfig, state: "SLAMState", frame: Frame, frames: "
     """A start for a frame the features could not place (texture-poor or repeated texture, a large motion):
     the newest tracked frame aligned to it by dense RGB-D odometry from the motion model's ``prediction``
     [4, 4] float64 (camera-to-world). Returns T_wc [4, 4] float64, or None when the alignment fails its checks.
-    Only with ``tracking.dense_start``; :meth:`Tracker.best_start` then judges it against the prediction."""
+    :func:`track_frame` calls it only with ``tracking.dense_start`` on; :meth:`Tracker.best_start` then judges
+    it against the prediction."""
     reference = state.newest_tracked_frame()
     if reference is None:
         return None
