@@ -433,6 +433,17 @@ class LoopConfig:
     # claims millimetres; re-optimising for a 1-2 cm residual on every revisit keyframe only churns the map).
     min_correction_m: float = 0.02
     min_correction_deg: float = 1.0
+    # A loop edge that disagrees with the current poses enters the graph only when a second registration implies
+    # the same correction: another loop edge of this keyframe (to a different old keyframe) or a disagreeing edge
+    # of one of the previous `confirm_keyframes` keyframes (ORB-SLAM's consistency check over consecutive
+    # keyframes). Real drift moves neighbouring keyframes alike; registration noise does not. Two corrections
+    # agree when their world-frame residuals differ by at most max(confirm_tolerance_m, confirm_relative x the
+    # smaller one) in translation and likewise in rotation. 0 turns the check off (every verified edge may
+    # trigger the optimisation). docs/tracking.md, "Loop closure".
+    confirm_keyframes: int = 2
+    confirm_tolerance_m: float = 0.01
+    confirm_tolerance_deg: float = 0.5
+    confirm_relative: float = 0.5
     # The pose-graph optimisation frees only the newest keyframes (older ones that share an edge with
     # them stay fixed as anchors); 0 frees the whole graph. A whole-graph solve costs time in proportion
     # to the keyframes, and a revisited room optimises every other keyframe: on a 2000-frame run the
@@ -451,6 +462,9 @@ class LoopConfig:
         _check(self.min_correction_m >= 0 and self.min_correction_deg >= 0, "loop.min_correction_*",
                "must be >= 0 (0 = no floor)")
         _check(self.consistent_chi2 >= 0, "loop.consistent_chi2", "must be >= 0 (0 = always optimise)")
+        _check(self.confirm_keyframes >= 0, "loop.confirm_keyframes", "must be >= 0 (0 = no confirmation)")
+        _check(self.confirm_tolerance_m >= 0 and self.confirm_tolerance_deg >= 0 and self.confirm_relative >= 0,
+               "loop.confirm_*", "tolerances must be >= 0")
         _check(self.refine_iterations >= 0, "loop.refine_iterations", "must be >= 0")
         _check(self.min_keyframe_gap >= 1, "loop.min_keyframe_gap", "must be >= 1")
         _check(self.num_eigenvectors >= 1, "loop.num_eigenvectors", "must be >= 1")

@@ -13,7 +13,10 @@ in the SLAM loop"):
    near in the current estimate (:func:`mipslam.loop.descriptors.select_loop_candidates`);
 4. each candidate i is verified by registering the two keyframes' RGB-D data
    (:func:`mipslam.loop.registration.register_rgbd_pair`, keyframe i the target); an accepted
-   registration becomes a loop edge (i, k);
+   registration becomes a loop edge (i, k) if it agrees with the current poses (step 5) or if another
+   verified edge of this keyframe or of the ``confirm_keyframes`` before it implies the same correction
+   of the query (:func:`implied_corrections`, :func:`corrections_agree`); an unconfirmed edge is reported
+   and left out;
 5. when this keyframe added loop edges that disagree with the current poses (some ``e^T Omega e``
    above ``consistent_chi2`` and a residual above ``min_correction_m`` or ``min_correction_deg``;
    edges that agree join the graph without an optimisation, which keeps a
@@ -39,7 +42,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Callable
 
 import torch
@@ -87,10 +90,14 @@ class LoopState:
 
     graph: pose graph whose node k is keyframe k (poses are the estimates of the last update)
     descriptors: global descriptor of every keyframe, float32 CPU   # [K, D]
+    recent_corrections: the corrections implied by the recent keyframes' verified loop edges, the evidence a
+        later edge is confirmed by (``loop.confirm_keyframes``): rows (query keyframe, the world-frame correction
+        ``C = T_i Z_ik T_k^-1`` of :func:`implied_corrections`, row-major 4x4), float64 CPU   # [P, 17]
     """
 
     graph: PoseGraph
     descriptors: torch.Tensor
+    recent_corrections: torch.Tensor = field(default_factory=lambda: torch.zeros(0, 17, dtype=torch.float64))
 
     @staticmethod
     def empty(descriptor_options: DescriptorOptions = DescriptorOptions()) -> "LoopState":
@@ -104,6 +111,7 @@ class LoopState:
         """Plain tensors only (``torch.load(..., weights_only=True)`` reads them)."""
         tensors = {f"graph.{k}": v for k, v in self.graph.state_dict().items()}
         tensors["descriptors"] = self.descriptors.detach().cpu().clone()
+        tensors["recent_corrections"] = self.recent_corrections.detach().cpu().clone()
         return tensors
 
     @staticmethod
@@ -116,7 +124,12 @@ class LoopState:
         if descriptors.dim() != 2 or descriptors.shape[0] != graph.num_nodes:
             raise CheckpointError(f"loop-closure state in checkpoint is inconsistent: {graph.num_nodes} pose-graph nodes "
                                   f"but descriptors of shape {tuple(descriptors.shape)}; start a new run")
-        return LoopState(graph, descriptors)
+        # a checkpoint written before the confirmation existed has none: the next edges wait for new evidence
+        recent = tensors.get("recent_corrections", torch.zeros(0, 17, dtype=torch.float64)).to(torch.float64).cpu()
+        if recent.dim() != 2 or recent.shape[1] != 17:
+            raise CheckpointError("loop-closure state in checkpoint has recent corrections of shape "
+                                  f"{tuple(recent.shape)}, expected [P, 17]; start a new run")
+        return LoopState(graph, descriptors, recent)
 
 
 @dataclass(frozen=True)
@@ -283,6 +296,37 @@ def pose_changes(T_old: torch.Tensor, T_new: torch.Tensor) -> tuple[float, float
     return float(change[:, :3, 3].norm(dim=-1).max()), float(torch.rad2deg(rotation_angle(change[:, :3, :3])).max())
 
 
+def implied_corrections(poses: torch.Tensor, k: int, candidates: list[int],
+                        measurements: list[torch.Tensor]) -> torch.Tensor:
+    """The world-frame correction ``C = T_i Z_ik T_k^-1`` that each loop edge (i, k) implies for keyframe k: the
+    rigid motion that puts keyframe k where keyframe i and the registration place it. Drift that the old
+    keyframes do not share moves neighbouring query keyframes by the same C; registration noise does not.
+
+    poses [K, 4, 4] T_wc float64, candidates: i per edge, measurements: Z_ik [4, 4] per edge -> [E, 4, 4]
+    """
+    if not candidates:
+        return torch.zeros(0, 4, 4, dtype=torch.float64)
+    T_i = poses[torch.tensor(candidates, dtype=torch.int64)]
+    return T_i @ torch.stack(measurements).to(torch.float64) @ se3_inverse(poses[k])
+
+
+def corrections_agree(C_a: torch.Tensor, C_b: torch.Tensor, T_wc: torch.Tensor, tolerance_m: float,
+                      tolerance_rad: float, relative: float) -> bool:
+    """Whether two world-frame corrections C_a, C_b [4, 4] move a camera at ``T_wc`` [4, 4] alike: the pose
+    ``C_a T_wc`` seen from ``C_b T_wc`` is within ``max(tolerance_m, relative * s_t)`` metres and
+    ``max(tolerance_rad, relative * s_r)`` radians, where s_t, s_r are the smaller of the two corrections' own
+    translation and rotation at that camera (origin-independent: both are measured in the camera's frame)."""
+    def local(C: torch.Tensor) -> torch.Tensor:  # the correction as a motion in the camera frame
+        return se3_inverse(T_wc) @ C @ T_wc
+
+    A, B = local(C_a), local(C_b)
+    D = se3_inverse(B) @ A
+    size_t = min(float(A[:3, 3].norm()), float(B[:3, 3].norm()))
+    size_r = min(float(rotation_angle(A[:3, :3])), float(rotation_angle(B[:3, :3])))
+    return (float(D[:3, 3].norm()) <= max(tolerance_m, relative * size_t)
+            and float(rotation_angle(D[:3, :3])) <= max(tolerance_rad, relative * size_r))
+
+
 # ----------------------------------------------------------------------------- the stage
 
 
@@ -329,7 +373,7 @@ class LoopCloser:
                                                cfg.odometry_drift_ratio)
             graph = graph.add_edge(k - 1, k, T_rel, information, "odometry")
 
-        reports, new_edges = [], []
+        reports, verified = [], []  # verified: (report index, candidate keyframe, T_ij, information)
         for candidate in select_loop_candidates(k, descriptors, poses, self.candidate_options):
             i = candidate.keyframe
             other = load_keyframe(i)
@@ -347,14 +391,31 @@ class LoopCloser:
                 "verified: loop edge added" if result.accepted else result.reason, result.time_s))
             if result.accepted:
                 information = loop_information(result.information, self.config.loop_sigma_m, self.config.loop_sigma_deg)
-                graph = graph.add_edge(i, k, result.T_ij, information, "loop")
-                new_edges.append(graph.num_edges - 1)
+                verified.append((len(reports) - 1, i, result.T_ij.to(torch.float64).cpu(), information))
         if reports:
-            logger.info("keyframe %d: %d loop candidate(s), %d verified", k, len(reports), len(new_edges))
+            logger.info("keyframe %d: %d loop candidate(s), %d verified", k, len(reports), len(verified))
 
-        if not new_edges or self._agrees_with_poses(graph, new_edges):
-            return LoopStep(LoopState(graph, descriptors), tuple(reports), None, None, 0.0)
-        return self._optimise(graph, descriptors, keyframe, new_edges, tuple(reports))
+        agrees = self._agrees_with_poses(poses, k, verified)
+        corrections = implied_corrections(poses, k, [i for _, i, _, _ in verified], [T for _, _, T, _ in verified])
+        confirmed = self._confirmed(k, poses[k], corrections, agrees, state.recent_corrections)
+        recent = self._recent_corrections(state.recent_corrections, k, corrections)
+        for n, (index, i, T_ij, information) in enumerate(verified):
+            if confirmed[n]:
+                graph = graph.add_edge(i, k, T_ij, information, "loop")
+            else:
+                reports[index] = replace(reports[index], accepted=False, reason=self._unconfirmed_reason(poses[k], corrections[n]))
+        kept = sum(confirmed)
+        if kept < len(verified):
+            logger.info("keyframe %d: %d verified loop edge(s) disagree with the poses and are not confirmed by another "
+                        "loop edge; not used", k, len(verified) - kept)
+        new_edges = list(range(graph.num_edges - kept, graph.num_edges))
+        if not any(keep and not agree for agree, keep in zip(agrees, confirmed)):
+            if new_edges:
+                logger.info("keyframe %d: %d new loop edge(s) agree with the poses (chi2 <= %.1f or within %.3f m / "
+                            "%.2f deg); no optimisation", k, len(new_edges), self.config.consistent_chi2,
+                            self.config.min_correction_m, self.config.min_correction_deg)
+            return LoopStep(LoopState(graph, descriptors, recent), tuple(reports), None, None, 0.0)
+        return self._optimise(graph, descriptors, keyframe, new_edges, tuple(reports), recent)
 
     def keeps_correction(self, psnr_before_db: list[float], psnr_moved_db: list[float]) -> bool:
         """Whether an applied correction stands: the map moved with it renders the loop's keyframes (mean PSNR,
@@ -393,24 +454,55 @@ class LoopCloser:
                   f"drifted over {path_m:.2f} m / {math.degrees(path_rad):.0f} deg of keyframe path")
         return replace(result, accepted=False, reason=reason)
 
-    def _agrees_with_poses(self, graph: PoseGraph, new_edges: list[int]) -> bool:
-        """True when every new loop edge already agrees with the current poses: its e^T Omega e is at most
-        ``consistent_chi2``, or its residual is within ``min_correction_m`` and ``min_correction_deg``."""
+    def _agrees_with_poses(self, poses: torch.Tensor, k: int, verified: list) -> list[bool]:
+        """Per verified edge (i, k) of ``verified`` ((report index, i, T_ij, information) each): whether it already
+        agrees with the current ``poses`` [K, 4, 4]: its e^T Omega e is at most ``consistent_chi2``, or its
+        residual is within ``min_correction_m`` and ``min_correction_deg``."""
+        if not verified:
+            return []
         cfg = self.config
-        edges = torch.tensor(new_edges, dtype=torch.long)
-        residuals = edge_residuals(graph.poses, graph.edge_nodes[edges], graph.measurements[edges])  # [E, 6]
-        chi2 = mahalanobis_sq(residuals, graph.information[edges])
+        nodes = torch.tensor([[i, k] for _, i, _, _ in verified], dtype=torch.int64)
+        residuals = edge_residuals(poses, nodes, torch.stack([T for _, _, T, _ in verified]))  # [E, 6]
+        chi2 = mahalanobis_sq(residuals, torch.stack([info for _, _, _, info in verified]))
         small = (residuals[:, :3].norm(dim=-1) <= cfg.min_correction_m) & (
             torch.rad2deg(residuals[:, 3:].norm(dim=-1)) <= cfg.min_correction_deg)
-        agrees = bool(((chi2 <= cfg.consistent_chi2) | small).all())
-        if agrees:
-            logger.info("keyframe %d: %d new loop edge(s) agree with the poses (chi2 <= %.1f or within %.3f m / %.2f deg); "
-                        "no optimisation", graph.num_nodes - 1, len(new_edges), cfg.consistent_chi2, cfg.min_correction_m,
-                        cfg.min_correction_deg)
-        return agrees
+        return ((chi2 <= cfg.consistent_chi2) | small).tolist()
+
+    def _confirmed(self, k: int, T_wc: torch.Tensor, corrections: torch.Tensor, agrees: list[bool],
+                   recent: torch.Tensor) -> list[bool]:
+        """Per verified edge of keyframe k (at ``T_wc`` [4, 4]): whether it may enter the graph. An edge that agrees
+        with the poses always may; one that disagrees only when another verified edge of this keyframe, or of one
+        of the ``confirm_keyframes`` before it (``recent`` [P, 17]), implies the same correction
+        (:func:`corrections_agree`). corrections [E, 4, 4]: :func:`implied_corrections` of the verified edges."""
+        cfg = self.config
+        if cfg.confirm_keyframes <= 0:
+            return [True] * len(agrees)
+        earlier = recent[(recent[:, 0] < k) & (recent[:, 0] >= k - cfg.confirm_keyframes), 1:].reshape(-1, 4, 4)
+        keep = []
+        for n, agree in enumerate(agrees):
+            others = torch.cat([corrections[:n], corrections[n + 1 :], earlier])
+            keep.append(agree or any(corrections_agree(corrections[n], other, T_wc, cfg.confirm_tolerance_m,
+                                                       math.radians(cfg.confirm_tolerance_deg), cfg.confirm_relative)
+                                     for other in others))
+        return keep
+
+    def _recent_corrections(self, recent: torch.Tensor, k: int, corrections: torch.Tensor) -> torch.Tensor:
+        """``recent`` [P, 17] without the rows older than ``confirm_keyframes`` keyframes, plus keyframe k's."""
+        if self.config.confirm_keyframes <= 0:
+            return recent[:0]
+        keep = recent[recent[:, 0] > k - self.config.confirm_keyframes]
+        rows = torch.cat([torch.full((corrections.shape[0], 1), float(k), dtype=torch.float64),
+                          corrections.reshape(-1, 16)], dim=1)
+        return torch.cat([keep, rows])
+
+    def _unconfirmed_reason(self, T_wc: torch.Tensor, correction: torch.Tensor) -> str:
+        local = se3_inverse(T_wc) @ correction @ T_wc
+        return (f"verified, but its correction of {float(local[:3, 3].norm()):.3f} m / "
+                f"{math.degrees(float(rotation_angle(local[:3, :3]))):.1f} deg is not confirmed by another loop edge of "
+                f"this keyframe or of the {self.config.confirm_keyframes} before it")
 
     def _optimise(self, graph: PoseGraph, descriptors: torch.Tensor, keyframe: KeyframeView, new_edges: list[int],
-                  reports: tuple[CandidateReport, ...]) -> LoopStep:
+                  reports: tuple[CandidateReport, ...], recent_corrections: torch.Tensor) -> LoopStep:
         graph = refresh_odometry(graph)
         with self.observer.stage("pgo"):
             result = optimize_pose_graph_window(graph, self.pgo_options, self.config.pgo_window_keyframes)
@@ -444,7 +536,8 @@ class LoopCloser:
         logger.info("keyframe %d: pose graph %d nodes / %d loops, cost %.4g -> %.4g in %d iterations, pruned %s; %s",
                     keyframe.keyframe_id, graph.num_nodes, report.loop_edges, result.initial_cost, result.final_cost,
                     result.iterations, report.pruned_edges, "applied" if applied else "not applied: " + reason)
-        return LoopStep(LoopState(kept, descriptors), reports, report, T_after.clone() if applied else None, result.time_s)
+        return LoopStep(LoopState(kept, descriptors, recent_corrections), reports, report,
+                        T_after.clone() if applied else None, result.time_s)
 
 
 def _loop_edge_summary(graph: PoseGraph, result: PGOResult, edges: list[int]) -> list[dict[str, Any]]:
