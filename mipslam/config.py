@@ -434,10 +434,10 @@ class LoopConfig:
     min_correction_m: float = 0.02
     min_correction_deg: float = 1.0
     # A loop edge that disagrees with the current poses enters the graph only when a second registration implies
-    # the same correction: another loop edge of this keyframe (to a different old keyframe) or a disagreeing edge
-    # of one of the previous `confirm_keyframes` keyframes (ORB-SLAM's consistency check over consecutive
-    # keyframes). Real drift moves neighbouring keyframes alike; registration noise does not. Two corrections
-    # agree when their world-frame residuals differ by at most max(confirm_tolerance_m, confirm_relative x the
+    # the same correction: another verified loop edge of this keyframe (to a different old keyframe) or of one of
+    # the previous `confirm_keyframes` keyframes (ORB-SLAM's consistency check over consecutive keyframes). Real
+    # drift moves neighbouring keyframes alike; registration noise does not. Two corrections C = T_i Z_ik T_k^-1
+    # agree when, seen from keyframe k, they differ by at most max(confirm_tolerance_m, confirm_relative x the
     # smaller one) in translation and likewise in rotation. 0 turns the check off (every verified edge may
     # trigger the optimisation). docs/tracking.md, "Loop closure".
     confirm_keyframes: int = 2

@@ -43,7 +43,7 @@ import logging
 import math
 import time
 from dataclasses import asdict, dataclass, field, replace
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, NamedTuple
 
 import torch
 
@@ -216,6 +216,15 @@ class LoopStep:
     pgo_seconds: float
 
 
+class VerifiedEdge(NamedTuple):
+    """A loop edge (candidate, query) whose registration passed verification, before it may join the graph."""
+
+    report_index: int  # its row in the keyframe's candidate reports
+    candidate: int  # keyframe i
+    T_ij: torch.Tensor  # [4, 4] float64 CPU, the measured T_i^-1 T_k
+    information: torch.Tensor  # [6, 6] float64, order [rho, phi]
+
+
 # ----------------------------------------------------------------------------- odometry edges
 
 
@@ -310,16 +319,19 @@ def implied_corrections(poses: torch.Tensor, k: int, candidates: list[int],
     return T_i @ torch.stack(measurements).to(torch.float64) @ se3_inverse(poses[k])
 
 
+def correction_at_camera(C: torch.Tensor, T_wc: torch.Tensor) -> torch.Tensor:
+    """A world-frame correction C [4, 4] as the motion it gives a camera at ``T_wc`` [4, 4], in that camera's frame:
+    ``T_wc^-1 C T_wc`` [4, 4] (independent of where the world origin lies)."""
+    return se3_inverse(T_wc) @ C @ T_wc
+
+
 def corrections_agree(C_a: torch.Tensor, C_b: torch.Tensor, T_wc: torch.Tensor, tolerance_m: float,
                       tolerance_rad: float, relative: float) -> bool:
     """Whether two world-frame corrections C_a, C_b [4, 4] move a camera at ``T_wc`` [4, 4] alike: the pose
     ``C_a T_wc`` seen from ``C_b T_wc`` is within ``max(tolerance_m, relative * s_t)`` metres and
     ``max(tolerance_rad, relative * s_r)`` radians, where s_t, s_r are the smaller of the two corrections' own
     translation and rotation at that camera (origin-independent: both are measured in the camera's frame)."""
-    def local(C: torch.Tensor) -> torch.Tensor:  # the correction as a motion in the camera frame
-        return se3_inverse(T_wc) @ C @ T_wc
-
-    A, B = local(C_a), local(C_b)
+    A, B = correction_at_camera(C_a, T_wc), correction_at_camera(C_b, T_wc)
     D = se3_inverse(B) @ A
     size_t = min(float(A[:3, 3].norm()), float(B[:3, 3].norm()))
     size_r = min(float(rotation_angle(A[:3, :3])), float(rotation_angle(B[:3, :3])))
@@ -373,7 +385,8 @@ class LoopCloser:
                                                cfg.odometry_drift_ratio)
             graph = graph.add_edge(k - 1, k, T_rel, information, "odometry")
 
-        reports, verified = [], []  # verified: (report index, candidate keyframe, T_ij, information)
+        reports: list[CandidateReport] = []
+        verified: list[VerifiedEdge] = []
         for candidate in select_loop_candidates(k, descriptors, poses, self.candidate_options):
             i = candidate.keyframe
             other = load_keyframe(i)
@@ -391,19 +404,20 @@ class LoopCloser:
                 "verified: loop edge added" if result.accepted else result.reason, result.time_s))
             if result.accepted:
                 information = loop_information(result.information, self.config.loop_sigma_m, self.config.loop_sigma_deg)
-                verified.append((len(reports) - 1, i, result.T_ij.to(torch.float64).cpu(), information))
+                verified.append(VerifiedEdge(len(reports) - 1, i, result.T_ij.to(torch.float64).cpu(), information))
         if reports:
             logger.info("keyframe %d: %d loop candidate(s), %d verified", k, len(reports), len(verified))
 
         agrees = self._agrees_with_poses(poses, k, verified)
-        corrections = implied_corrections(poses, k, [i for _, i, _, _ in verified], [T for _, _, T, _ in verified])
+        corrections = implied_corrections(poses, k, [e.candidate for e in verified], [e.T_ij for e in verified])
         confirmed = self._confirmed(k, poses[k], corrections, agrees, state.recent_corrections)
         recent = self._recent_corrections(state.recent_corrections, k, corrections)
-        for n, (index, i, T_ij, information) in enumerate(verified):
-            if confirmed[n]:
-                graph = graph.add_edge(i, k, T_ij, information, "loop")
+        for edge, keep, correction in zip(verified, confirmed, corrections):
+            if keep:
+                graph = graph.add_edge(edge.candidate, k, edge.T_ij, edge.information, "loop")
             else:
-                reports[index] = replace(reports[index], accepted=False, reason=self._unconfirmed_reason(poses[k], corrections[n]))
+                reports[edge.report_index] = replace(reports[edge.report_index], accepted=False,
+                                                     reason=self._unconfirmed_reason(poses[k], correction))
         kept = sum(confirmed)
         if kept < len(verified):
             logger.info("keyframe %d: %d verified loop edge(s) disagree with the poses and are not confirmed by another "
@@ -454,16 +468,15 @@ class LoopCloser:
                   f"drifted over {path_m:.2f} m / {math.degrees(path_rad):.0f} deg of keyframe path")
         return replace(result, accepted=False, reason=reason)
 
-    def _agrees_with_poses(self, poses: torch.Tensor, k: int, verified: list) -> list[bool]:
-        """Per verified edge (i, k) of ``verified`` ((report index, i, T_ij, information) each): whether it already
-        agrees with the current ``poses`` [K, 4, 4]: its e^T Omega e is at most ``consistent_chi2``, or its
+    def _agrees_with_poses(self, poses: torch.Tensor, k: int, verified: list[VerifiedEdge]) -> list[bool]:
+        """Per verified edge (i, k): whether it already agrees with the current ``poses`` [K, 4, 4]: its e^T Omega e is at most ``consistent_chi2``, or its
         residual is within ``min_correction_m`` and ``min_correction_deg``."""
         if not verified:
             return []
         cfg = self.config
-        nodes = torch.tensor([[i, k] for _, i, _, _ in verified], dtype=torch.int64)
-        residuals = edge_residuals(poses, nodes, torch.stack([T for _, _, T, _ in verified]))  # [E, 6]
-        chi2 = mahalanobis_sq(residuals, torch.stack([info for _, _, _, info in verified]))
+        nodes = torch.tensor([[e.candidate, k] for e in verified], dtype=torch.int64)
+        residuals = edge_residuals(poses, nodes, torch.stack([e.T_ij for e in verified]))  # [E, 6]
+        chi2 = mahalanobis_sq(residuals, torch.stack([e.information for e in verified]))
         small = (residuals[:, :3].norm(dim=-1) <= cfg.min_correction_m) & (
             torch.rad2deg(residuals[:, 3:].norm(dim=-1)) <= cfg.min_correction_deg)
         return ((chi2 <= cfg.consistent_chi2) | small).tolist()
@@ -496,7 +509,7 @@ class LoopCloser:
         return torch.cat([keep, rows])
 
     def _unconfirmed_reason(self, T_wc: torch.Tensor, correction: torch.Tensor) -> str:
-        local = se3_inverse(T_wc) @ correction @ T_wc
+        local = correction_at_camera(correction, T_wc)
         return (f"verified, but its correction of {float(local[:3, 3].norm()):.3f} m / "
                 f"{math.degrees(float(rotation_angle(local[:3, :3]))):.1f} deg is not confirmed by another loop edge of "
                 f"this keyframe or of the {self.config.confirm_keyframes} before it")
