@@ -227,9 +227,23 @@ class TrackingConfig:
     # Depth pixels whose residual exceeds this many times the median residual leave the depth term (0 = off):
     # disocclusions the map does not hold pull the pose back towards the keyframes that built it (docs/mapping.md).
     depth_outlier_ratio: float = 0.0
+    # Direct RGB-D alignment (mipslam/geometry/direct.py) of the map's render onto the frame before the gradient
+    # steps: Gauss-Newton on intensity and depth residuals, coarse to fine, converging in a few steps where the
+    # gradient steps creep. direct_iterations: steps per pyramid level at most (0 = off); direct_levels: pyramid
+    # levels, each half the next, the finest at tracking's finest resolution; direct_renders: renders of the map
+    # it aligns to (each after the first at the pose the previous alignment reached; the loss of every render
+    # is checked and a render that explains the frame worse ends the alignment at the pose before it).
+    direct_iterations: int = 0
+    direct_levels: int = 2
+    direct_renders: int = 1
+    direct_convergence: float = 1e-4  # a level stops once a step's se(3) norm falls below this
 
     def __post_init__(self):
         _check(self.iterations >= 1, "tracking.iterations", "must be >= 1")
+        _check(self.direct_iterations >= 0, "tracking.direct_iterations", "must be >= 0 (0 = off)")
+        _check(self.direct_levels >= 1, "tracking.direct_levels", "must be >= 1")
+        _check(self.direct_renders >= 1, "tracking.direct_renders", "must be >= 1")
+        _check(self.direct_convergence > 0, "tracking.direct_convergence", "must be > 0")
         _check(self.depth_outlier_ratio >= 0, "tracking.depth_outlier_ratio", "must be >= 0 (0 = off)")
         _check(0 < self.depth_alpha_floor <= 1, "tracking.depth_alpha_floor", "must be in (0, 1]")
         _check(self.max_depth >= 0, "tracking.max_depth", "must be >= 0 metres (0 = no limit)")

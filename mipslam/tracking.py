@@ -10,6 +10,8 @@ levels run at reduced resolution (area-averaged targets, intrinsics scaled with 
 optionally in a cheaper footprint mode (``tracking.coarse_render_mode``).
 The renderer's pose-only backward is used (the map is frozen), on the Gaussians that can reach the
 view from the motion-model pose (:func:`~mipslam.rendering.frustum_indices`, ``render.frustum_margin``).
+With ``tracking.direct_iterations`` > 0 the gradient steps start where a direct RGB-D alignment
+(Gauss-Newton, :func:`~mipslam.geometry.direct.align_direct`) of the map's render onto the frame ends.
 
 Failure (non-finite loss, too few valid pixels, loss far above its running level) keeps the
 motion-model pose and is reported, never raised: the pipeline flags the frame and skips mapping.
@@ -31,7 +33,9 @@ from mipslam.errors import MipslamError
 from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry import nearest_rigid, resize_area
 from mipslam.frontend import Frontend, FrontendStart
-from mipslam.geometry.se3 import se3_exp, se3_inverse
+from mipslam.geometry.direct import (DirectReference, DirectResult, DirectTarget, align_direct, direct_reference,
+                                     direct_target, pyramid_scales)
+from mipslam.geometry.se3 import se3_exp, se3_inverse, se3_log
 from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, image_gradient_mask, rgbd_l1_loss, rgbd_masks
 from mipslam.loop.registration import RegistrationOptions, register_rgbd_odometry
 from mipslam.rendering import frustum_subset, render_view
@@ -51,7 +55,7 @@ class TrackingResult:
     T_wc:           [4, 4] float64 camera-to-world (the motion-model pose when tracking failed)
     exposure:       [2] float32 (log_gain, bias) of the affine exposure model (zeros when off)
     loss:           final loss at the finest level (tracking.resolution_scale; NaN when it could not be computed)
-    iterations:     optimiser steps taken over all levels
+    iterations:     optimiser steps taken over all levels (the direct alignment's Gauss-Newton steps included)
     valid_fraction: fraction of pixels in the depth term at the finest level
     ok:             False when tracking failed (the frame is flagged and not mapped)
     status:         "ok", "initial", "non_finite_loss", "too_few_valid_pixels" or "loss_jump"
@@ -94,6 +98,17 @@ class _Level:
     render_mode: str | None  # footprint mode of this level's renders (None: render.mode)
 
 
+@dataclass(frozen=True)
+class _Seen:
+    """A render at tracking's finest level: its loss, depth-term pixels, covered pixels and pose [4, 4]
+    float64 world-to-camera."""
+
+    loss: float
+    depth_pixels: int
+    covered: int
+    T_cw: torch.Tensor
+
+
 class Tracker:
     """Tracks frames against a frozen map (reads only the tracking and render config sections)."""
 
@@ -101,6 +116,7 @@ class Tracker:
         self.config = config
         self.render_config = render_config
         self._last_levels: tuple[Frame, list[_Level]] | None = None  # the pyramid of the frame tracked last
+        self._last_direct: tuple[Frame, list[DirectTarget]] | None = None  # its direct-alignment pyramid
 
     def _levels(self, frame: Frame) -> list[_Level]:
         """The frame's image pyramid and loss masks, coarse to fine; built once per frame (the start judge,
@@ -140,17 +156,96 @@ class Tracker:
             levels.append(_Level(intrinsics, color, depth, target_masks, iterations, mode))
         return levels
 
+    def _direct_targets(self, frame: Frame) -> list[DirectTarget]:
+        """The frame's pyramid for the direct alignment, coarse to fine, the finest at tracking's finest level
+        (built once per frame)."""
+        if self._last_direct is not None and self._last_direct[0] is frame:
+            return self._last_direct[1]
+        full = self._levels(frame)[-1]
+        depth = full.depth if self.config.max_depth <= 0 else torch.where(full.depth <= self.config.max_depth,
+                                                                           full.depth, 0.0)
+        targets = []
+        for scale in pyramid_scales(self.config.direct_levels):
+            color, level_depth = full.color, depth
+            if scale < 1.0:
+                color, level_depth = resize_area(full.color, scale), resize_area(depth, scale, valid=depth > 0)
+            K = full.intrinsics.scaled(scale).matrix(dtype=torch.float32, device=full.color.device)
+            targets.append(direct_target(color, level_depth, K))
+        self._last_direct = (frame, targets)
+        return targets
+
+    def _direct_references(self, color: torch.Tensor, depth: torch.Tensor, mask: torch.Tensor,
+                           intrinsics: Intrinsics) -> list[DirectReference]:
+        """The render's pyramid as reference points, coarse to fine: color [h, w, 3], depth [h, w] (metres),
+        mask [h, w] bool (opaque pixels) at tracking's finest level."""
+        references = []
+        for scale in pyramid_scales(self.config.direct_levels):
+            level_color, level_depth, level_mask = color, depth, mask
+            if scale < 1.0:
+                level_color = resize_area(color, scale)
+                level_depth = resize_area(depth, scale, valid=mask)
+                level_mask = resize_area(mask.to(color.dtype), scale) >= 0.999  # wholly opaque pixels only
+            K = intrinsics.scaled(scale).matrix(dtype=torch.float32, device=color.device)
+            references.append(direct_reference(level_color, level_depth, level_mask, K))
+        return references
+
+    @torch.no_grad()
+    def _direct_alignment(self, gaussians: ActivatedGaussians, frame: Frame,
+                          T_cw: torch.Tensor) -> tuple[torch.Tensor, _Seen | None, int]:
+        """Direct RGB-D alignment of the map's render at ``T_cw`` [4, 4] float64 onto the frame
+        (``tracking.direct_*``; :func:`~mipslam.geometry.direct.align_direct`).
+
+        Returns the pose [4, 4] float64 (world-to-camera) the gradient steps start from, the render with the
+        lowest loss seen on the way (None when none was finite) and the Gauss-Newton steps taken. Each render
+        after the first is at the pose the previous alignment reached; one whose loss is not lower than the
+        best before it ends the alignment at the best render's pose.
+        """
+        cfg = self.config
+        full = self._levels(frame)[-1]
+        targets = self._direct_targets(frame)
+        dtype = gaussians.means.dtype
+        best: _Seen | None = None
+        steps = 0
+        for _ in range(cfg.direct_renders):
+            out = render_view(gaussians, T_cw.to(dtype), full.intrinsics, self.render_config, mode=full.render_mode,
+                              pose_only=True)
+            loss = self._loss_of_render(out, full, None)
+            value = float(loss.total)
+            if not math.isfinite(value) or (best is not None and value >= best.loss):
+                return (T_cw if best is None else best.T_cw), best, steps
+            covered = int(((out.alpha >= cfg.coverage_opacity) & full.target_masks.depth).sum())
+            best = _Seen(value, loss.num_depth_pixels, covered, T_cw)
+            opaque = out.alpha >= max(cfg.opacity_threshold, 1e-3)
+            # The depth as the gradient steps' loss reads it (the composited sum(T a z) unless
+            # tracking.depth_normalise): where the two objectives disagree the steps undo the alignment
+            # (dividing by the opacity alone: the noisy dolly 0.75 -> 2.22 cm, docs/tracking.md).
+            depth = out.depth / out.alpha.clamp_min(cfg.depth_alpha_floor) if cfg.depth_normalise else out.depth
+            depth = torch.where(opaque, depth, 0.0)
+            references = self._direct_references(out.color, depth, opaque, full.intrinsics)
+            eye = torch.eye(4, dtype=torch.float64)
+            result = align_direct(references, targets, eye, iterations=cfg.direct_iterations,
+                                  alpha_color=cfg.alpha_color, convergence=cfg.direct_convergence)
+            steps += result.iterations
+            if not result.ok:
+                return T_cw, best, steps
+            T_cw = result.T.to(T_cw) @ T_cw
+        return T_cw, best, steps
+
     def _loss(self, gaussians: ActivatedGaussians, T_cw: torch.Tensor, level: _Level, exposure: torch.Tensor | None):
         """The loss of the map rendered at ``T_cw`` [4, 4] against ``level``, and the render's opacity [h, w]."""
         out = render_view(gaussians, T_cw, level.intrinsics, self.render_config, mode=level.render_mode,
                           pose_only=True)
+        return self._loss_of_render(out, level, exposure), out.alpha.detach()
+
+    def _loss_of_render(self, out, level: _Level, exposure: torch.Tensor | None):
+        """The tracking loss of a render ``out`` (:class:`~mipslam.render.RenderOutput`) against ``level``."""
         masks = level.target_masks.where_opaque(out.alpha, self.config.opacity_threshold)
         color = out.color if exposure is None else apply_affine_exposure(out.color, exposure[0], exposure[1])
         loss = rgbd_l1_loss(color, out.depth, level.color, level.depth, alpha_color=self.config.alpha_color,
                             masks=masks, depth_alpha=out.alpha if self.config.depth_normalise else None,
                             depth_alpha_floor=self.config.depth_alpha_floor,
                             depth_outlier_ratio=self.config.depth_outlier_ratio)
-        return loss, out.alpha.detach()
+        return loss
 
     def track(
         self,
@@ -166,6 +261,9 @@ class Tracker:
         # would amplify that from frame to frame); only the renderer's input is cast to the map's dtype.
         T_cw_init = se3_inverse(T_wc_init.to(torch.float64)).to(device=device)
         gaussians = frustum_subset(gaussians, T_cw_init.to(dtype), frame.intrinsics, self.render_config)
+        seen, iterations = None, 0
+        if cfg.direct_iterations > 0:
+            T_cw_init, seen, iterations = self._direct_alignment(gaussians, frame, T_cw_init)
         rho = torch.zeros(3, device=device, dtype=dtype, requires_grad=True)
         phi = torch.zeros(3, device=device, dtype=dtype, requires_grad=True)
         groups = [{"params": [rho], "lr": cfg.lr_translation}, {"params": [phi], "lr": cfg.lr_rotation}]
@@ -175,11 +273,15 @@ class Tracker:
             groups.append({"params": [exposure], "lr": cfg.lr_rotation})
         optimizer = _pose_optimizer(cfg, groups)
 
-        iterations = 0
         # The lowest full-resolution loss seen, its depth-pixel count, the valid-depth pixels the map renders there
-        # (opacity >= coverage_opacity), and the pose (and exposure) it was seen at.
+        # (opacity >= coverage_opacity), and the pose (and exposure) it was seen at; the direct alignment's
+        # renders count.
         best_loss, best_depth_pixels, best_covered = math.inf, 0, 0
         best = (torch.zeros(6, dtype=dtype, device=device), None)
+        if seen is not None:
+            best_loss, best_depth_pixels, best_covered = seen.loss, seen.depth_pixels, seen.covered
+            xi_seen = se3_log(seen.T_cw @ se3_inverse(T_cw_init)).to(dtype)
+            best = (xi_seen, None if exposure is None else torch.zeros_like(exposure.detach()))
         levels = self._levels(frame)
         full = levels[-1]  # the finest level (tracking.resolution_scale) is last and gets at least half the iterations
         base_lrs = [group["lr"] for group in optimizer.param_groups]

@@ -266,3 +266,58 @@ def test_dense_alignment_to_the_previous_frame_recovers_a_large_motion(tmp_path)
     after = se3_log(se3_inverse(T_wc_true) @ aligned)
     assert before[:3].norm() > 0.07 and after[:3].norm() < 0.02, (before, after)
     assert math.degrees(float(after[3:].norm())) < 1.0, after
+
+
+@pytest.fixture(scope="module")
+def one_frame_map_128(tmp_path_factory):
+    """As one_frame_map at 128x96: at 64x48 a 2 cm / 1 degree error moves the image by under a pixel, below
+    what a render of a one-frame map resolves."""
+    import data_synth
+
+    seq = tmp_path_factory.mktemp("track128") / "seq"
+    data_synth.generate(seq, layout="replica", trajectory="loop", width=128, height=96, frames=2, seed=0, supersample=2)
+    config, sequence, gmap, _, _ = map_of_first_frame(seq, 60)
+    return seq, config, sequence, gmap.activated().detached()
+
+
+def test_direct_alignment_starts_the_gradient_steps_close_to_the_pose(one_frame_map_128):
+    # tracking.direct_*: Gauss-Newton against the map's render takes a 2 cm / 1 degree error out before four
+    # gradient steps, which alone leave most of it; its renders' losses join the best-pose bookkeeping.
+    seq, config, sequence, gaussians = one_frame_map_128
+    frame = sequence[0]
+    T_wc_true = sequence.gt_T_wc[0]
+    perturbation = se3_exp(torch.tensor([0.015, -0.01, 0.01, 0.01, -0.015, 0.005], dtype=torch.float64))
+    T_wc_init = T_wc_true @ perturbation
+    settings = tiny_config(seq, "tracking.iterations=4", *_OPTIMIZERS["rprop"]).tracking
+    errors = {}
+    for name, direct_iterations in (("gradient steps", 0), ("direct + gradient steps", 8)):
+        tracker = Tracker(replace(settings, direct_iterations=direct_iterations, direct_renders=2), config.render)
+        result = tracker.track(gaussians, frame, T_wc_init, running_loss=None)
+        assert result.ok
+        errors[name] = se3_log(se3_inverse(T_wc_true) @ result.T_wc)
+        if direct_iterations:
+            assert result.iterations > settings.iterations  # Gauss-Newton steps are counted
+    before = se3_log(se3_inverse(T_wc_true) @ T_wc_init)
+    direct, plain = errors["direct + gradient steps"], errors["gradient steps"]
+    assert direct[:3].norm() < 0.3 * before[:3].norm() and direct[3:].norm() < 0.3 * before[3:].norm(), errors
+    assert direct[:3].norm() < 0.5 * plain[:3].norm(), errors
+
+
+def test_a_direct_alignment_that_renders_worse_ends_at_the_best_render(one_frame_map, monkeypatch):
+    seq, config, sequence, gaussians = one_frame_map
+    frame = sequence[0]
+    T_wc_true = sequence.gt_T_wc[0]
+    settings = tiny_config(seq, "tracking.iterations=1", *_OPTIMIZERS["rprop"]).tracking
+    tracker = Tracker(replace(settings, direct_iterations=8, direct_renders=3), config.render)
+    away = se3_exp(torch.tensor([0.05, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64))
+
+    def misaligned(references, targets, T_init, **kwargs):  # an alignment that walks 5 cm off every time
+        return tracking.DirectResult(T=away, iterations=3, points=100, ok=True)
+
+    monkeypatch.setattr(tracking, "align_direct", misaligned)
+    T_cw_true = se3_inverse(T_wc_true)
+    T_cw, seen, steps = tracker._direct_alignment(gaussians, frame, T_cw_true)
+    # the second render (5 cm off) explains the frame worse than the first: the alignment stops at the first
+    assert torch.equal(T_cw, T_cw_true) and torch.equal(seen.T_cw, T_cw_true) and steps == 3
+    result = tracker.track(gaussians, frame, T_wc_true, running_loss=None)
+    assert se3_log(se3_inverse(T_wc_true) @ result.T_wc)[:3].norm() < 0.01
