@@ -224,10 +224,14 @@ class Tracker:
             references = self._direct_references(out.color, depth, opaque, full.intrinsics)
             eye = torch.eye(4, dtype=torch.float64)
             result = align_direct(references, targets, eye, iterations=cfg.direct_iterations,
-                                  alpha_color=cfg.alpha_color, convergence=cfg.direct_convergence)
+                                  alpha_color=cfg.direct_alpha_color, convergence=cfg.direct_convergence)
             steps += result.iterations
             if not result.ok:
                 return T_cw, best, steps
+            motion = se3_log(result.T)
+            log.debug("frame %d: direct alignment moved %.2f cm / %.2f deg in %d steps (render loss %.4f before)",
+                      frame.index, 100 * float(motion[:3].norm()), math.degrees(float(motion[3:].norm())),
+                      result.iterations, value)
             T_cw = result.T.to(T_cw) @ T_cw
         return T_cw, best, steps
 

@@ -13,8 +13,11 @@ def test_bench_tracking_bias_reports_finite_biases_and_errors(tmp_path):
     sequence = tmp_path / "seq"
     data_synth.generate(sequence, layout="replica", trajectory="loop", width=40, height=30, frames=11, seed=0,
                         supersample=2)
+    # At 40x30 a one-view map of 20 steps pins a pose to centimetres only: the preset's direct alignment finds
+    # that loss's minimum 3-13 cm from the truth, so the bounds below are for the gradient steps alone.
     options = tracking_bias.Options(sequence=str(sequence), pure_motions=True,
-                                    config_overrides=("mapping.first_frame_iterations=20", "tracking.iterations=6"))
+                                    config_overrides=("mapping.first_frame_iterations=20", "tracking.iterations=6",
+                                                      "tracking.direct_iterations=0"))
     result = run_scenario("tracking_bias", options, tmp_path / "out")
     results = json.loads(result.files.json.read_text())["results"]
     assert results["gaussians"] > 0
