@@ -33,7 +33,7 @@ from mipslam.errors import MipslamError
 from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry import nearest_rigid, resize_area
 from mipslam.frontend import Frontend, FrontendStart
-from mipslam.geometry.direct import (DirectReference, DirectResult, DirectTarget, align_direct, direct_reference,
+from mipslam.geometry.direct import (DirectReference, DirectTarget, align_direct, direct_reference,
                                      direct_target, pyramid_scales)
 from mipslam.geometry.se3 import se3_exp, se3_inverse, se3_log
 from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, image_gradient_mask, rgbd_l1_loss, rgbd_masks

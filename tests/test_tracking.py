@@ -11,6 +11,7 @@ import torch
 from mipslam.config import RenderConfig, load_config
 from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry import se3_exp, se3_inverse, se3_log
+from mipslam.geometry.direct import DirectResult
 from mipslam.pipeline import run_slam
 from mipslam.rendering import frustum_subset, render_view
 import mipslam.tracking as tracking
@@ -312,7 +313,7 @@ def test_a_direct_alignment_that_renders_worse_ends_at_the_best_render(one_frame
     away = se3_exp(torch.tensor([0.05, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64))
 
     def misaligned(references, targets, T_init, **kwargs):  # an alignment that walks 5 cm off every time
-        return tracking.DirectResult(T=away, iterations=3, points=100, ok=True)
+        return DirectResult(T=away, iterations=3, points=100, ok=True)
 
     monkeypatch.setattr(tracking, "align_direct", misaligned)
     T_cw_true = se3_inverse(T_wc_true)
