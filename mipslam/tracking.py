@@ -38,6 +38,7 @@ from mipslam.geometry.direct import (DirectReference, DirectTarget, align_direct
 from mipslam.geometry.se3 import se3_exp, se3_inverse, se3_log
 from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, image_gradient_mask, rgbd_l1_loss, rgbd_masks
 from mipslam.loop.registration import RegistrationOptions, register_rgbd_odometry
+from mipslam.render import RenderOutput
 from mipslam.rendering import frustum_subset, render_view
 from mipslam.types import Frame, Intrinsics
 
@@ -117,6 +118,9 @@ class Tracker:
         self.render_config = render_config
         self._last_levels: tuple[Frame, list[_Level]] | None = None  # the pyramid of the frame tracked last
         self._last_direct: tuple[Frame, list[DirectTarget]] | None = None  # its direct-alignment pyramid
+        # best_start's renders of the frame judged last, (T_cw [4, 4], render) each: the direct alignment's first
+        # render is the chosen candidate's
+        self._start_renders: tuple[Frame, list[tuple[torch.Tensor, RenderOutput]]] | None = None
 
     def _levels(self, frame: Frame) -> list[_Level]:
         """The frame's image pyramid and loss masks, coarse to fine; built once per frame (the start judge,
@@ -206,9 +210,11 @@ class Tracker:
         dtype = gaussians.means.dtype
         best: _Seen | None = None
         steps = 0
-        for _ in range(cfg.direct_renders):
-            out = render_view(gaussians, T_cw.to(dtype), full.intrinsics, self.render_config, mode=full.render_mode,
-                              pose_only=True)
+        for round_index in range(cfg.direct_renders):
+            out = self._start_render(frame, T_cw.to(dtype)) if round_index == 0 else None
+            if out is None:
+                out = render_view(gaussians, T_cw.to(dtype), full.intrinsics, self.render_config,
+                                  mode=full.render_mode, pose_only=True)
             loss = self._loss_of_render(out, full, None)
             value = float(loss.total)
             if not math.isfinite(value) or (best is not None and value >= best.loss):
@@ -234,6 +240,15 @@ class Tracker:
                       result.iterations, value)
             T_cw = result.T.to(T_cw) @ T_cw
         return T_cw, best, steps
+
+    def _start_render(self, frame: Frame, T_cw: torch.Tensor) -> RenderOutput | None:
+        """best_start's render of ``frame`` at exactly ``T_cw`` [4, 4] (the map's dtype), if it made one."""
+        if self._start_renders is None or self._start_renders[0] is not frame:
+            return None
+        for T_rendered, out in self._start_renders[1]:
+            if torch.equal(T_rendered, T_cw):
+                return out
+        return None
 
     def _loss(self, gaussians: ActivatedGaussians, T_cw: torch.Tensor, level: _Level, exposure: torch.Tensor | None):
         """The loss of the map rendered at ``T_cw`` [4, 4] against ``level``, and the render's opacity [h, w]."""
@@ -353,14 +368,20 @@ class Tracker:
             return 0
         level = self._levels(frame)[-1]
         device, dtype = gaussians.means.device, gaussians.means.dtype
-        losses = []
+        losses, renders = [], []
         for T_wc in candidates:
             T_cw = se3_inverse(T_wc.to(torch.float64)).to(device=device, dtype=dtype)
             subset = frustum_subset(gaussians, T_cw, frame.intrinsics, self.render_config)
-            loss, _ = self._loss(subset, T_cw, level, None)
+            out = render_view(subset, T_cw, level.intrinsics, self.render_config, mode=level.render_mode,
+                              pose_only=True)
+            renders.append((T_cw, out))
+            loss = self._loss_of_render(out, level, None)
             valid = loss.num_depth_pixels / max(1, level.depth.numel())
             value = float(loss.total)
             losses.append(value if math.isfinite(value) and valid >= self.config.min_valid_fraction else math.inf)
+        # tracking renders the chosen start again at the same pose and level (its subset is the same: tracking
+        # takes the frustum subset at its start pose), so the direct alignment reuses it
+        self._start_renders = (frame, renders) if self.config.direct_iterations > 0 else None
         best = 0
         for i in range(1, len(candidates)):
             if losses[i] < (1.0 - self.config.start_margin) * losses[best]:

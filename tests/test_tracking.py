@@ -322,3 +322,25 @@ def test_a_direct_alignment_that_renders_worse_ends_at_the_best_render(one_frame
     assert torch.equal(T_cw, T_cw_true) and torch.equal(seen.T_cw, T_cw_true) and steps == 3
     result = tracker.track(gaussians, frame, T_wc_true, running_loss=None)
     assert se3_log(se3_inverse(T_wc_true) @ result.T_wc)[:3].norm() < 0.01
+
+
+def test_the_direct_alignment_reuses_the_start_judges_render_of_the_chosen_start(one_frame_map_128, monkeypatch):
+    seq, config, sequence, gaussians = one_frame_map_128
+    frame = sequence[0]
+    T_wc_true = sequence.gt_T_wc[0]
+    candidates = [T_wc_true @ se3_exp(torch.tensor([0.02, 0.0, 0.0, 0.0, 0.01, 0.0], dtype=torch.float64)),
+                  T_wc_true @ se3_exp(torch.tensor([0.005, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64))]
+    settings = replace(tiny_config(seq, "tracking.iterations=4", *_OPTIMIZERS["rprop"]).tracking,
+                       direct_iterations=8, start_margin=0.0)
+    renders = []
+    real_render = tracking.render_view
+    monkeypatch.setattr(tracking, "render_view", lambda *a, **k: renders.append(1) or real_render(*a, **k))
+    judged = Tracker(settings, config.render)
+    chosen = judged.best_start(gaussians, frame, candidates)
+    assert chosen == 1 and len(renders) == 2
+    reused = judged.track(gaussians, frame, candidates[chosen], running_loss=None)
+    after_judge = len(renders)
+    fresh = Tracker(settings, config.render).track(gaussians, frame, candidates[chosen], running_loss=None)
+    # the same pose, bit for bit, with one render fewer
+    assert torch.equal(reused.T_wc, fresh.T_wc) and reused.loss == fresh.loss
+    assert after_judge - 2 == len(renders) - after_judge - 1
