@@ -256,8 +256,8 @@ class Tracker:
                           pose_only=True)
         return self._loss_of_render(out, level, exposure), out.alpha.detach()
 
-    def _loss_of_render(self, out, level: _Level, exposure: torch.Tensor | None):
-        """The tracking loss of a render ``out`` (:class:`~mipslam.render.RenderOutput`) against ``level``."""
+    def _loss_of_render(self, out: RenderOutput, level: _Level, exposure: torch.Tensor | None):
+        """The tracking loss of the render ``out`` against ``level``."""
         masks = level.target_masks.where_opaque(out.alpha, self.config.opacity_threshold)
         color = out.color if exposure is None else apply_affine_exposure(out.color, exposure[0], exposure[1])
         loss = rgbd_l1_loss(color, out.depth, level.color, level.depth, alpha_color=self.config.alpha_color,
