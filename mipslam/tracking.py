@@ -166,8 +166,7 @@ class Tracker:
         if self._last_direct is not None and self._last_direct[0] is frame:
             return self._last_direct[1]
         full = self._levels(frame)[-1]
-        depth = full.depth if self.config.max_depth <= 0 else torch.where(full.depth <= self.config.max_depth,
-                                                                           full.depth, 0.0)
+        depth = torch.where(full.target_masks.depth, full.depth, 0.0)  # the depth term's pixels (tracking.max_depth)
         targets = []
         for scale in pyramid_scales(self.config.direct_levels):
             color, level_depth = full.color, depth
@@ -219,8 +218,7 @@ class Tracker:
             value = float(loss.total)
             if not math.isfinite(value) or (best is not None and value >= best.loss):
                 return (T_cw if best is None else best.T_cw), best, steps
-            covered = int(((out.alpha >= cfg.coverage_opacity) & full.target_masks.depth).sum())
-            best = _Seen(value, loss.num_depth_pixels, covered, T_cw)
+            best = _Seen(value, loss.num_depth_pixels, self._covered_pixels(out.alpha, full), T_cw)
             opaque = out.alpha >= max(cfg.opacity_threshold, 1e-3)
             # The depth as the gradient steps' loss reads it (the composited sum(T a z) unless
             # tracking.depth_normalise): where the two objectives disagree the steps undo the alignment
@@ -240,6 +238,11 @@ class Tracker:
                       result.iterations, value)
             T_cw = result.T.to(T_cw) @ T_cw
         return T_cw, best, steps
+
+    def _covered_pixels(self, alpha: torch.Tensor, level: _Level) -> int:
+        """Valid-depth pixels of ``level`` that a render with opacity ``alpha`` [h, w] covers (opacity >=
+        ``tracking.coverage_opacity``)."""
+        return int(((alpha >= self.config.coverage_opacity) & level.target_masks.depth).sum())
 
     def _start_render(self, frame: Frame, T_cw: torch.Tensor) -> RenderOutput | None:
         """best_start's render of ``frame`` at exactly ``T_cw`` [4, 4] (the map's dtype), if it made one."""
@@ -320,7 +323,7 @@ class Tracker:
                     return self._failed(T_wc_init, iterations, "non_finite_loss", math.nan, 0.0)
                 if level is full and float(loss.total.detach()) < best_loss:
                     best_loss, best_depth_pixels = float(loss.total.detach()), loss.num_depth_pixels
-                    best_covered = int(((alpha >= cfg.coverage_opacity) & level.target_masks.depth).sum())
+                    best_covered = self._covered_pixels(alpha, level)
                     best = (xi.detach().clone(), None if exposure is None else exposure.detach().clone())
                 optimizer.zero_grad(set_to_none=True)
                 loss.total.backward()

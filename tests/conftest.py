@@ -43,14 +43,27 @@ def tiny_sequence(tmp_path_factory) -> Path:
     return out
 
 
-@pytest.fixture(scope="module")
-def one_frame_map(tmp_path_factory):
-    """(sequence folder, config, sequence, frozen map of frame 0) on a 2-frame 64x48 loop: at 40x30 the map
-    of one frame is too coarse to pin the pose to a few millimetres."""
+def _one_frame_map(tmp_path_factory, width: int, height: int):
+    """(sequence folder, config, sequence, frozen map of frame 0) on a 2-frame width x height loop."""
     import data_synth
     from tiny_runs import map_of_first_frame
 
-    seq = tmp_path_factory.mktemp("track") / "seq"
-    data_synth.generate(seq, layout="replica", trajectory="loop", width=64, height=48, frames=2, seed=0, supersample=2)
+    seq = tmp_path_factory.mktemp(f"track{width}") / "seq"
+    data_synth.generate(seq, layout="replica", trajectory="loop", width=width, height=height, frames=2, seed=0,
+                        supersample=2)
     config, sequence, gmap, _, _ = map_of_first_frame(seq, 60)
     return seq, config, sequence, gmap.activated().detached()
+
+
+@pytest.fixture(scope="module")
+def one_frame_map(tmp_path_factory):
+    """The one-frame map at 64x48: at 40x30 the map of one frame is too coarse to pin the pose to a few
+    millimetres."""
+    return _one_frame_map(tmp_path_factory, 64, 48)
+
+
+@pytest.fixture(scope="module")
+def one_frame_map_128(tmp_path_factory):
+    """The one-frame map at 128x96: at 64x48 a 2 cm / 1 degree error moves the image by under a pixel, below
+    what a render of a one-frame map resolves (the direct alignment's tests)."""
+    return _one_frame_map(tmp_path_factory, 128, 96)

@@ -269,18 +269,6 @@ def test_dense_alignment_to_the_previous_frame_recovers_a_large_motion(tmp_path)
     assert math.degrees(float(after[3:].norm())) < 1.0, after
 
 
-@pytest.fixture(scope="module")
-def one_frame_map_128(tmp_path_factory):
-    """As one_frame_map at 128x96: at 64x48 a 2 cm / 1 degree error moves the image by under a pixel, below
-    what a render of a one-frame map resolves."""
-    import data_synth
-
-    seq = tmp_path_factory.mktemp("track128") / "seq"
-    data_synth.generate(seq, layout="replica", trajectory="loop", width=128, height=96, frames=2, seed=0, supersample=2)
-    config, sequence, gmap, _, _ = map_of_first_frame(seq, 60)
-    return seq, config, sequence, gmap.activated().detached()
-
-
 def test_direct_alignment_starts_the_gradient_steps_close_to_the_pose(one_frame_map_128):
     # tracking.direct_*: Gauss-Newton against the map's render takes a 2 cm / 1 degree error out before four
     # gradient steps, which alone leave most of it; its renders' losses join the best-pose bookkeeping.
