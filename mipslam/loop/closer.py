@@ -469,8 +469,9 @@ class LoopCloser:
         return replace(result, accepted=False, reason=reason)
 
     def _agrees_with_poses(self, poses: torch.Tensor, k: int, verified: list[VerifiedEdge]) -> list[bool]:
-        """Per verified edge (i, k): whether it already agrees with the current ``poses`` [K, 4, 4]: its e^T Omega e is at most ``consistent_chi2``, or its
-        residual is within ``min_correction_m`` and ``min_correction_deg``."""
+        """Per verified edge (i, k): whether it already agrees with the current ``poses`` [K, 4, 4]: its
+        e^T Omega e is at most ``consistent_chi2``, or its residual is within ``min_correction_m`` and
+        ``min_correction_deg``."""
         if not verified:
             return []
         cfg = self.config
