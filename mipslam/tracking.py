@@ -56,7 +56,7 @@ class TrackingResult:
     T_wc:           [4, 4] float64 camera-to-world (the motion-model pose when tracking failed)
     exposure:       [2] float32 (log_gain, bias) of the affine exposure model (zeros when off)
     loss:           final loss at the finest level (tracking.resolution_scale; NaN when it could not be computed)
-    iterations:     optimiser steps taken over all levels (the direct alignment's Gauss-Newton steps included)
+    iterations:     tracking-loss renders over all levels plus the direct alignment's Gauss-Newton steps
     valid_fraction: fraction of pixels in the depth term at the finest level
     ok:             False when tracking failed (the frame is flagged and not mapped)
     status:         "ok", "initial", "non_finite_loss", "too_few_valid_pixels" or "loss_jump"
@@ -299,6 +299,7 @@ class Tracker:
         # (opacity >= coverage_opacity), and the pose (and exposure) it was seen at; the direct alignment's
         # renders count.
         best_loss, best_depth_pixels, best_covered = math.inf, 0, 0
+        best_step, full_steps = 0, 0  # the finest level's step that gave the best pose (0: the alignment's render)
         best = (torch.zeros(6, dtype=dtype, device=device), None)
         if seen is not None:
             best_loss, best_depth_pixels, best_covered = seen.loss, seen.depth_pixels, seen.covered
@@ -321,10 +322,16 @@ class Tracker:
                 loss, alpha = self._loss(gaussians, T_cw, level, exposure)
                 if not torch.isfinite(loss.total):
                     return self._failed(T_wc_init, iterations, "non_finite_loss", math.nan, 0.0)
+                if level is full:
+                    full_steps += 1
                 if level is full and float(loss.total.detach()) < best_loss:
                     best_loss, best_depth_pixels = float(loss.total.detach()), loss.num_depth_pixels
+                    best_step = full_steps
                     best_covered = self._covered_pixels(alpha, level)
                     best = (xi.detach().clone(), None if exposure is None else exposure.detach().clone())
+                if level is full and i == level.iterations - 1:
+                    iterations += 1
+                    break  # no render would judge a further step: its backward is skipped
                 optimizer.zero_grad(set_to_none=True)
                 loss.total.backward()
                 before = xi.detach()
@@ -334,6 +341,8 @@ class Tracker:
                 if _converged(optimizer, [rho, phi], step, cfg.convergence_threshold):
                     break
 
+        log.debug("frame %d: lowest tracking loss %.5f at gradient step %d of %d at the finest level", frame.index,
+                  best_loss, best_step, full_steps)
         # The best pose's loss and valid-pixel count (seen when it was rendered) decide success.
         xi_best, exposure_best = best
         T_cw_best = se3_exp(xi_best.to(torch.float64)) @ T_cw_init
