@@ -38,7 +38,7 @@ from mipslam.geometry.direct import (DirectReference, DirectTarget, align_direct
 from mipslam.geometry.se3 import se3_exp, se3_inverse, se3_log
 from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, image_gradient_mask, rgbd_l1_loss, rgbd_masks
 from mipslam.loop.registration import RegistrationOptions, register_rgbd_odometry
-from mipslam.render import RenderOutput
+from mipslam.render import RenderOutput, available_backends
 from mipslam.rendering import frustum_subset, render_view
 from mipslam.types import Frame, Intrinsics
 
@@ -227,15 +227,17 @@ class Tracker:
             depth = torch.where(opaque, depth, 0.0)
             references = self._direct_references(out.color, depth, opaque, full.intrinsics)
             eye = torch.eye(4, dtype=torch.float64)
-            result = align_direct(references, targets, eye, iterations=cfg.direct_iterations,
-                                  alpha_color=cfg.direct_alpha_color, convergence=cfg.direct_convergence)
+            align = _direct_aligner(self.render_config.backend, out.color.device)
+            result = align(references, targets, eye, iterations=cfg.direct_iterations,
+                           alpha_color=cfg.direct_alpha_color, convergence=cfg.direct_convergence)
             steps += result.iterations
             if not result.ok:
                 return T_cw, best, steps
-            motion = se3_log(result.T)
-            log.debug("frame %d: direct alignment moved %.2f cm / %.2f deg in %d steps (render loss %.4f before)",
-                      frame.index, 100 * float(motion[:3].norm()), math.degrees(float(motion[3:].norm())),
-                      result.iterations, value)
+            if log.isEnabledFor(logging.DEBUG):  # the logarithm costs more than the message
+                motion = se3_log(result.T)
+                log.debug("frame %d: direct alignment moved %.2f cm / %.2f deg in %d steps (render loss %.4f "
+                          "before)", frame.index, 100 * float(motion[:3].norm()), math.degrees(float(motion[3:].norm())),
+                          result.iterations, value)
             T_cw = result.T.to(T_cw) @ T_cw
         return T_cw, best, steps
 
@@ -404,6 +406,17 @@ class Tracker:
     def _failed(T_wc_init: torch.Tensor, iterations: int, status: str, loss: float, valid_fraction: float) -> TrackingResult:
         return TrackingResult(T_wc_init.detach().to(torch.float64).cpu().clone(), torch.zeros(2), loss, iterations,
                               valid_fraction, False, status)
+
+
+def _direct_aligner(backend: str, device: torch.device):
+    """The direct alignment to run: the compiled one (:func:`mipslam.render.cpu.align_direct`) where the
+    renderer's ``backend`` setting takes the compiled CPU library and it is built, for CPU tensors; else the
+    torch reference (:func:`~mipslam.geometry.direct.align_direct`, any device). Both take the same arguments."""
+    if backend != "torch" and device.type == "cpu" and "cpu" in available_backends():
+        from mipslam.render.cpu import align_direct as compiled
+
+        return compiled
+    return align_direct
 
 
 def _pose_optimizer(cfg: TrackingConfig, groups: list[dict]) -> torch.optim.Optimizer:

@@ -1,5 +1,7 @@
-"""Direct RGB-D alignment (mipslam/geometry/direct.py) on an analytic scene: a textured slanted plane seen by two
-cameras, each image computed by intersecting its pixel rays with the plane (no renderer involved)."""
+"""Direct RGB-D alignment (mipslam/geometry/direct.py, and its compiled twin mipslam.render.cpu.align_direct) on an
+analytic scene: a textured slanted plane seen by two cameras, each image computed by intersecting its pixel rays
+with the plane (no renderer involved). Every behaviour test runs on both; the compiled one must also equal the
+reference to rounding and give the same bits for the same thread count."""
 from __future__ import annotations
 
 import math
@@ -8,12 +10,9 @@ import pytest
 import torch
 
 from mipslam.geometry import se3_exp, se3_inverse, se3_log
-from mipslam.geometry.direct import (
-    align_direct,
-    direct_reference,
-    direct_target,
-    pyramid_scales,
-)
+from mipslam.geometry.direct import align_direct as reference_align_direct
+from mipslam.geometry.direct import direct_reference, direct_target, pyramid_scales
+from mipslam.render import cpu as cpu_backend
 
 WIDTH, HEIGHT = 96, 72
 K = torch.tensor([[80.0, 0.0, 47.5], [0.0, 80.0, 35.5], [0.0, 0.0, 1.0]])
@@ -63,11 +62,21 @@ def _error(T: torch.Tensor, T_true: torch.Tensor) -> tuple[float, float]:
     return float(e[:3].norm()), math.degrees(float(e[3:].norm()))
 
 
+@pytest.fixture(params=["torch", "cpu"])
+def align_direct(request):
+    """The torch reference or the compiled alignment (skipped where the library is not built)."""
+    if request.param == "torch":
+        return reference_align_direct
+    if not cpu_backend.is_available():
+        pytest.skip(f"the compiled CPU library is not available: {cpu_backend.unavailable_reason()}")
+    return cpu_backend.align_direct
+
+
 MOTION = torch.tensor([0.02, -0.012, 0.015, 0.012, -0.02, 0.01], dtype=torch.float64)  # 2.8 cm, 1.4 degrees
 
 
 @pytest.mark.parametrize("alpha_color", [0.5, 0.9])
-def test_direct_alignment_recovers_a_known_motion_to_a_fraction_of_a_millimetre(alpha_color):
+def test_direct_alignment_recovers_a_known_motion_to_a_fraction_of_a_millimetre(align_direct, alpha_color):
     T_ref = torch.eye(4, dtype=torch.float64)
     T_motion = se3_exp(MOTION)  # target camera from reference camera
     references, targets = _pyramids(T_ref, T_motion @ T_ref)
@@ -80,7 +89,7 @@ def test_direct_alignment_recovers_a_known_motion_to_a_fraction_of_a_millimetre(
     assert rotation < 0.03, rotation
 
 
-def test_direct_alignment_ignores_a_brightness_offset_between_the_views():
+def test_direct_alignment_ignores_a_brightness_offset_between_the_views(align_direct):
     T_motion = se3_exp(MOTION)
     eye = torch.eye(4, dtype=torch.float64)
     plain = align_direct(*_pyramids(eye, T_motion), eye, iterations=15, alpha_color=0.9)
@@ -89,7 +98,7 @@ def test_direct_alignment_ignores_a_brightness_offset_between_the_views():
     assert _error(brighter.T, plain.T)[0] < 5e-4
 
 
-def test_depth_alone_pins_the_motion_of_a_slanted_plane_only_partly_and_colour_completes_it():
+def test_depth_alone_pins_the_motion_of_a_slanted_plane_only_partly_and_colour_completes_it(align_direct):
     # A plane constrains three of the six degrees of freedom through depth; the texture pins the others.
     T_motion = se3_exp(MOTION)
     eye = torch.eye(4, dtype=torch.float64)
@@ -98,7 +107,7 @@ def test_depth_alone_pins_the_motion_of_a_slanted_plane_only_partly_and_colour_c
     assert _error(both.T, T_motion)[0] < 0.1 * _error(depth_only.T, T_motion)[0]
 
 
-def test_an_alignment_without_enough_points_keeps_the_initial_motion():
+def test_an_alignment_without_enough_points_keeps_the_initial_motion(align_direct):
     eye = torch.eye(4, dtype=torch.float64)
     references, targets = _pyramids(eye, se3_exp(MOTION))
     empty = [direct_reference(torch.zeros(4, 4, 3), torch.zeros(4, 4), torch.zeros(4, 4, dtype=torch.bool), K)
@@ -109,6 +118,66 @@ def test_an_alignment_without_enough_points_keeps_the_initial_motion():
     assert torch.equal(result.T, start)
     with pytest.raises(ValueError, match="levels"):
         align_direct(references[:1], targets, eye, iterations=10, alpha_color=0.5)
+
+
+def _noisy_pyramids(seed: int):
+    """The plane's pyramids with per-pixel noise, depth holes and a brightness offset: residuals whose medians,
+    Huber weights and step halvings all take part."""
+    generator = torch.Generator().manual_seed(seed)
+    eye = torch.eye(4, dtype=torch.float64)
+    references, targets = _pyramids(eye, se3_exp(MOTION), levels=3, brightness=0.03)
+    noisy = []
+    for target in targets:
+        channels = target.channels.clone()
+        channels[0, 0] += 0.02 * torch.randn(channels.shape[2:], generator=generator)
+        holes = torch.rand(channels.shape[2:], generator=generator) < 0.1
+        channels[0, 3][holes] = 0.0
+        channels[0, 6][holes] = 0.0
+        noisy.append(type(target)(channels=channels, K=target.K))
+    return references, noisy
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("alpha_color", [0.5, 0.8])  # depth alone leaves a plane's motion free (see below)
+def test_the_compiled_alignment_equals_the_reference_to_rounding(seed, alpha_color):
+    if not cpu_backend.is_available():
+        pytest.skip(f"the compiled CPU library is not available: {cpu_backend.unavailable_reason()}")
+    references, targets = _noisy_pyramids(seed)
+    start = se3_exp(0.3 * MOTION)
+    reference = reference_align_direct(references, targets, start, iterations=8, alpha_color=alpha_color)
+    compiled = cpu_backend.align_direct(references, targets, start, iterations=8, alpha_color=alpha_color)
+    assert compiled.ok and reference.ok
+    assert compiled.iterations == reference.iterations
+    assert abs(compiled.points - reference.points) <= 0.001 * reference.points
+    translation, rotation = _error(compiled.T, reference.T)
+    assert translation < 2e-5 and rotation < 1e-3, (translation, rotation)  # metres, degrees
+
+
+def test_the_compiled_alignment_gives_the_same_bits_for_the_same_thread_count():
+    if not cpu_backend.is_available():
+        pytest.skip(f"the compiled CPU library is not available: {cpu_backend.unavailable_reason()}")
+    references, targets = _noisy_pyramids(2)
+    threads = torch.get_num_threads()
+    try:
+        results = {}
+        for count in (1, 2):
+            torch.set_num_threads(count)
+            runs = [cpu_backend.align_direct(references, targets, torch.eye(4, dtype=torch.float64), iterations=8,
+                                             alpha_color=0.8) for _ in range(3)]
+            assert all(torch.equal(run.T, runs[0].T) for run in runs)
+            results[count] = runs[0].T
+        assert _error(results[1], results[2])[0] < 1e-5  # other thread counts: the same to rounding
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_the_compiled_alignment_keeps_a_non_finite_start_and_reports_it():
+    if not cpu_backend.is_available():
+        pytest.skip(f"the compiled CPU library is not available: {cpu_backend.unavailable_reason()}")
+    references, targets = _pyramids(torch.eye(4, dtype=torch.float64), se3_exp(MOTION))
+    start = torch.full((4, 4), float("nan"), dtype=torch.float64)
+    result = cpu_backend.align_direct(references, targets, start, iterations=5, alpha_color=0.5)
+    assert not result.ok and result.iterations == 0 and torch.isnan(result.T).all()
 
 
 def test_target_depth_is_unusable_across_holes_and_jumps():

@@ -16,6 +16,7 @@ backward. Modules, one job each:
     library.py   finds, checks and loads the built library (ctypes), calls it with tensors; kernel timing
     autograd.py  the torch.autograd.Functions around the library's forward and backward
     backend.py   the entry points (rasterize, rasterize_projected, project_footprints, ...)
+    direct_align.h  tracking's direct RGB-D alignment (align_direct), the twin of mipslam.geometry.direct's
 
 Nothing here compiles: a missing or stale build logs one warning, :func:`is_available` is False,
 ``backend="auto"`` uses the torch backend and ``backend="cpu"`` raises
@@ -25,7 +26,7 @@ from __future__ import annotations
 
 from mipslam.render.cpu.autograd import ProjectFootprints, RasterizeProjected
 from mipslam.render.cpu.backend import (MAX_ROWS, MODE_IDS, SUPPORTED_CHANNELS, CpuImage, FootprintProjection,
-                                        project_footprints, rasterize, rasterize_projected, rasterize_unfused,
+                                        align_direct, project_footprints, rasterize, rasterize_projected, rasterize_unfused,
                                         reference_footprints, unsupported_reason)
 from mipslam.render.cpu.library import (KernelTimes, Library, is_available, load_extension, profile_kernels,
                                         unavailable_reason, warm_up)
@@ -33,4 +34,4 @@ from mipslam.render.cpu.library import (KernelTimes, Library, is_available, load
 __all__ = ["is_available", "unavailable_reason", "unsupported_reason", "load_extension", "warm_up", "rasterize",
            "rasterize_unfused", "rasterize_projected", "RasterizeProjected", "ProjectFootprints",
            "project_footprints", "reference_footprints", "FootprintProjection", "CpuImage", "profile_kernels",
-           "KernelTimes", "Library", "MODE_IDS", "SUPPORTED_CHANNELS", "MAX_ROWS"]
+           "KernelTimes", "Library", "MODE_IDS", "SUPPORTED_CHANNELS", "MAX_ROWS", "align_direct"]

@@ -9,6 +9,8 @@ import dataclasses
 import torch
 
 from mipslam.errors import BackendUnavailableError, RenderError
+from mipslam.geometry import direct as direct_reference
+from mipslam.geometry.se3 import _SERIES_ANGLE_SQ
 from mipslam.render import footprint, projection
 from mipslam.render.cpu.autograd import (ProjectFootprints, RasterizeProjected, _gauss_legendre_f32,
                                          _params_for)
@@ -198,3 +200,28 @@ def rasterize_unfused(means, quats, scales, opacities, colors, viewmat, K, width
     out = rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width, height, mode, options,
                           rasterizer=rasterize_projected)
     return dataclasses.replace(out, backend="cpu")
+
+
+#: The constants of the direct alignment, in the order of direct_align.h's Constant enum: one source, the
+#: reference's.
+_DIRECT_CONSTANTS = (direct_reference.HUBER_K, direct_reference.MAD_TO_SIGMA, direct_reference.MIN_SCALE_INTENSITY,
+                     direct_reference.MIN_SCALE_DEPTH, float(direct_reference.MAX_HALVINGS),
+                     float(direct_reference.MIN_POINTS), _SERIES_ANGLE_SQ[torch.float64])
+
+
+def align_direct(references, targets, T_init: torch.Tensor, *, iterations: int, alpha_color: float,
+                 convergence: float = 1e-5):
+    """:func:`mipslam.geometry.direct.align_direct` in C++ (direct_align.h): the same arguments, objective and
+    step control, float64 normal equations; CPU float32 references and targets. Equals the reference to
+    rounding (tests/test_direct_compiled.py). -> :class:`~mipslam.geometry.direct.DirectResult`"""
+    if len(references) != len(targets):
+        raise ValueError(f"align_direct: {len(references)} reference levels against {len(targets)} target levels")
+    levels = []
+    for reference, target in zip(references, targets):
+        K = target.K.detach().to(torch.float32).cpu()
+        levels.append((reference.points.contiguous(), reference.intensity.contiguous(), target.channels[0],
+                       (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))))
+    T, steps, points, ran = load_extension().direct_align(levels, T_init, iterations, alpha_color, convergence,
+                                                          _DIRECT_CONSTANTS)
+    return direct_reference.DirectResult(T=T, iterations=steps, points=points,
+                                         ok=ran and bool(torch.isfinite(T).all()))

@@ -29,7 +29,7 @@ from mipslam.errors import BackendUnavailableError, RenderError
 log = logging.getLogger("mipslam.render.cpu")
 
 #: The C interface version this module speaks (mipslam_abi_version in raster_ext.cpp).
-ABI_VERSION = 1
+ABI_VERSION = 2
 _ERROR_BYTES = 2048
 _ERR_VALUE, _ERR_MEMORY = 1, 3
 REBUILD_HINT = "run ./scripts/setup or python -m mipslam.render.cpu.build"
@@ -50,6 +50,7 @@ _SIGNATURES = {
     "mipslam_project_backward": ([_i64] + [_p] * 5 + [_i64, _i64] + [_p] * 3 + [_i64, _i64, _p, _i64] + [_p] * 5
                                  + [_i64] * 3 + [_p] * 6 + [_i64], ctypes.c_int),
     "mipslam_vector_math": ([_p, _p, _i64, _i64], None),
+    "mipslam_direct_align": ([_i64] + [_p] * 7 + [_i64, _f64, _f64, _p, _i64, _p, _p, _p, _i64], ctypes.c_int),
 }
 
 
@@ -65,6 +66,12 @@ def _param_array(params: tuple) -> ctypes.Array:
 
 def _ptr(t: torch.Tensor | None) -> int | None:
     return None if t is None else t.data_ptr()
+
+
+def _c_array(ctype, values) -> ctypes.Array:
+    """A C array of ``values`` (at least one element, so an empty list still passes a valid pointer)."""
+    values = list(values)
+    return (ctype * max(1, len(values)))(*values)
 
 
 def _check(t: torch.Tensor, name: str, dtype: torch.dtype, shape: tuple) -> None:
@@ -174,6 +181,34 @@ class Library:
                    _ptr(g_view))
         g_viewmat = g_view[_VIEWMAT_LAYOUT].view(4, 4).to(dtype) if need_viewmat else None
         return (*outs, g_viewmat)
+
+    # --- direct RGB-D alignment (direct_align.h) -----------------------------------------------------
+    def direct_align(self, levels: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[float, ...]]],
+                     T_init: torch.Tensor, iterations: int, alpha_color: float, convergence: float,
+                     constants: tuple[float, ...]) -> tuple[torch.Tensor, int, int, bool]:
+        """Gauss-Newton alignment over pyramid ``levels``, coarse to fine, each (points [n, 3], intensity [n],
+        channels [7, h, w], (fx, fy, cx, cy)), float32. -> (T [4, 4] float64, steps, residuals used, ran)."""
+        count = len(levels)
+        tensors = []
+        for points, intensity, channels, _ in levels:
+            n = points.shape[0]
+            _check(points, "points", torch.float32, (n, 3))
+            _check(intensity, "intensity", torch.float32, (n,))
+            if channels.dim() != 3 or channels.shape[0] != 7:
+                raise RuntimeError(f"mipslam direct alignment: channels must be [7, h, w], got {list(channels.shape)}")
+            _check(channels, "channels", torch.float32, tuple(channels.shape))
+            tensors.append((points, intensity, channels))
+        points, intensities, channels = zip(*tensors) if tensors else ((), (), ())
+        intrinsics = _c_array(ctypes.c_float, [float(k) for level in levels for k in level[3]])
+        T = T_init.detach().to(torch.float64).cpu().contiguous().clone()
+        stats = torch.zeros(3, dtype=torch.int64)
+        self._call(self._lib.mipslam_direct_align, count, _c_array(ctypes.c_void_p, map(_ptr, points)),
+                   _c_array(ctypes.c_void_p, map(_ptr, intensities)), _c_array(ctypes.c_int64, (p.shape[0] for p in points)),
+                   _c_array(ctypes.c_void_p, map(_ptr, channels)), _c_array(ctypes.c_int64, (c.shape[1] for c in channels)),
+                   _c_array(ctypes.c_int64, (c.shape[2] for c in channels)), intrinsics, int(iterations),
+                   float(alpha_color), float(convergence), _c_array(ctypes.c_double, constants), len(constants),
+                   _ptr(T), _ptr(stats))
+        return T, int(stats[0]), int(stats[1]), bool(stats[2])
 
     # --- tile rasterizer ------------------------------------------------------------------------------
     @staticmethod

@@ -20,6 +20,7 @@
 #include <memory>
 #include <vector>
 
+#include "direct_align.h"
 #include "footprint_simd.h"
 #include "projection.h"
 #include "simd_math.h"
@@ -826,7 +827,7 @@ int guarded(char* err, int64_t err_len, F&& body) {
 #endif
 
 // Bumped whenever a signature below changes (library.py refuses a library of another version).
-MIPSLAM_API int mipslam_abi_version(void) { return 1; }
+MIPSLAM_API int mipslam_abi_version(void) { return 2; }
 
 // Hash of the sources and flags the library was built from (mipslam/render/cpu/build.py, source_hash), also
 // readable from the file without loading it (the marker).
@@ -1020,4 +1021,35 @@ MIPSLAM_API void mipslam_vector_math(const float* x, float* y, int64_t n, int64_
         const vf r = which == 0 ? vexp(v) : verf(v);
         for (int l = 0; l < LANES && i + l < n; ++l) y[i + l] = r[l];
     }
+}
+
+// Direct RGB-D alignment (direct_align.h) over ``levels`` pyramid levels, coarse to fine. Per level l:
+// points[l] [counts[l], 3] and intensity[l] [counts[l]] of the reference, channels[l] [7, heights[l],
+// widths[l]] of the target, intrinsics[4 l .. 4 l + 3] = fx, fy, cx, cy. T [16] (row-major, float64) is the
+// initial motion on entry and the result on return; stats[3] = Gauss-Newton steps, residuals used at the last
+// step, 1 if any step ran. constants[NUM_CONSTANTS]: direct_align.h's Constant order.
+MIPSLAM_API int mipslam_direct_align(int64_t levels, const float* const* points, const float* const* intensity,
+                                     const int64_t* counts, const float* const* channels, const int64_t* heights,
+                                     const int64_t* widths, const float* intrinsics, int64_t iterations,
+                                     double alpha_color, double convergence, const double* constants,
+                                     int64_t n_constants, double* T, int64_t* stats, char* err, int64_t err_len) {
+    using namespace mipslam_cpu;
+    return guarded(err, err_len, [&] {
+        MIPSLAM_CHECK(n_constants == direct::NUM_CONSTANTS, "mipslam_direct_align: ", n_constants,
+                      " constants, expected ", (int)direct::NUM_CONSTANTS);
+        MIPSLAM_CHECK(levels >= 0 && iterations >= 0, "mipslam_direct_align: bad sizes");
+        std::vector<direct::Level> pyramid;
+        for (int64_t l = 0; l < levels; ++l) {
+            MIPSLAM_CHECK(counts[l] >= 0 && heights[l] >= 1 && widths[l] >= 1,
+                          "mipslam_direct_align: level ", l, " has a bad size");
+            pyramid.push_back(direct::Level{points[l], intensity[l], counts[l], channels[l], heights[l], widths[l],
+                                            intrinsics[4 * l], intrinsics[4 * l + 1], intrinsics[4 * l + 2],
+                                            intrinsics[4 * l + 3]});
+        }
+        const direct::Outcome outcome =
+            direct::align(pyramid, T, iterations, alpha_color, convergence, constants);
+        stats[0] = outcome.steps;
+        stats[1] = outcome.points;
+        stats[2] = outcome.ran ? 1 : 0;
+    });
 }
