@@ -139,32 +139,69 @@ def extract_features(
 
 
 def match_features(query: np.ndarray, train: np.ndarray, ratio: float, max_hamming: int,
-                   allowed: np.ndarray | None = None) -> np.ndarray:
+                   candidates: np.ndarray | None = None) -> np.ndarray:
     """Mutual nearest neighbours by Hamming distance that pass the ratio test.
 
-    query [M, 32], train [N, 32] uint8 -> [K, 2] int64 pairs (query row, train row).
-    allowed: [M, N] bool, the pairs that may match (guided search); None allows all.
+    query [M, 32], train [N, 32] uint8 -> [K, 2] int64 pairs (query row, train row), by query row.
+    candidates: [P, 2] int64 (query row, train row), the pairs that may match (guided search); None allows all.
     """
     if len(query) < 2 or len(train) < 2:
         return np.zeros((0, 2), np.int64)
+    if candidates is not None:
+        return _match_candidates(query, train, candidates, ratio, max_hamming)
     matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
-    if allowed is None:
-        forward = matcher.knnMatch(query, train, k=2)
-        backward = {m.queryIdx: m.trainIdx for m in matcher.match(train, query)}
-    else:
-        forward = matcher.knnMatch(query, train, k=2, mask=allowed.astype(np.uint8))
-        backward = {m.queryIdx: m.trainIdx for m in matcher.match(train, query, mask=allowed.T.astype(np.uint8).copy())}
+    forward = matcher.knnMatch(query, train, k=2)
+    backward = {m.queryIdx: m.trainIdx for m in matcher.match(train, query)}
     pairs = []
-    for candidates in forward:
-        if not candidates:
+    for nearest in forward:
+        if not nearest:
             continue
-        best = candidates[0]
-        # a single candidate (guided search) has nothing to be confused with
-        if best.distance > max_hamming or (len(candidates) > 1 and best.distance >= ratio * candidates[1].distance):
+        best = nearest[0]
+        if best.distance > max_hamming or (len(nearest) > 1 and best.distance >= ratio * nearest[1].distance):
             continue
         if backward.get(best.trainIdx) == best.queryIdx:
             pairs.append((best.queryIdx, best.trainIdx))
     return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+
+
+def hamming_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamming distance of each row pair.  a, b [P, 32] uint8 -> [P] int64"""
+    xor = np.bitwise_xor(np.ascontiguousarray(a).view(np.uint64), np.ascontiguousarray(b).view(np.uint64))
+    if hasattr(np, "bitwise_count"):  # numpy >= 2.0
+        counts = np.bitwise_count(xor).astype(np.int64)  # [P, 4]
+        return counts[:, 0] + counts[:, 1] + counts[:, 2] + counts[:, 3]
+    return np.unpackbits(xor.view(np.uint8), axis=1).sum(axis=1, dtype=np.int64)
+
+
+def _nearest_per_row(rows: np.ndarray, columns: np.ndarray, distances: np.ndarray, n_rows: int, n_columns: int):
+    """For each row: its nearest column (-1 where it has no candidate) and distance, and the second-nearest
+    distance (inf where it has fewer than two candidates). Ties go to the lower column, as OpenCV's brute-force
+    matcher breaks them. rows, columns, distances [P] (each (row, column) at most once) -> 3 x [n_rows]"""
+    key = distances * n_columns + columns  # orders by distance, then column
+    best = np.full(n_rows, np.iinfo(np.int64).max, dtype=np.int64)
+    np.minimum.at(best, rows, key)
+    others = key != best[rows]
+    second = np.full(n_rows, np.inf)
+    np.minimum.at(second, rows[others], distances[others].astype(np.float64))
+    found = best != np.iinfo(np.int64).max
+    return (np.where(found, best % n_columns, -1), np.where(found, best // n_columns, np.inf).astype(np.float64),
+            second)
+
+
+def _match_candidates(query: np.ndarray, train: np.ndarray, candidates: np.ndarray, ratio: float,
+                      max_hamming: int) -> np.ndarray:
+    """:func:`match_features` among candidate pairs: what the brute-force matcher with the pairs as its mask
+    finds, from the candidates' distances alone (a guided search has tens of candidates per keypoint, not N)."""
+    if len(candidates) == 0:
+        return np.zeros((0, 2), np.int64)
+    q, t = candidates[:, 0], candidates[:, 1]
+    distances = hamming_distances(np.take(query, q, axis=0), np.take(train, t, axis=0))
+    nearest_train, best, second = _nearest_per_row(q, t, distances, len(query), len(train))
+    nearest_query, _, _ = _nearest_per_row(t, q, distances, len(train), len(query))
+    rows = np.flatnonzero(nearest_train >= 0)
+    columns = nearest_train[rows]
+    keep = (best[rows] <= max_hamming) & ~(best[rows] >= ratio * second[rows]) & (nearest_query[columns] == rows)
+    return np.stack([rows[keep], columns[keep]], axis=1).astype(np.int64)
 
 
 def _camera_matrix(intrinsics: Intrinsics) -> np.ndarray:
@@ -213,31 +250,26 @@ def _check_jump(result: RelativePose, T_rc_prior: torch.Tensor, options: Feature
 
 def _projection_gate(reference: FrameFeatures, current: FrameFeatures, intrinsics: Intrinsics,
                      T_rc: torch.Tensor, radius: float) -> np.ndarray:
-    """[M, N] bool: current keypoint m may match reference point n (projection at T_rc within the radius).
-
-    The pairs within reach come from a k-d tree of the projections: the dense [M, N] distance table cost
-    more than the matching it gates (about 13 ms for 1000 x 1000 keypoints).
-    """
+    """[P, 2] int64 pairs (current keypoint m, reference point n) that may match: n's projection at T_rc lies
+    within the radius of m, from a k-d tree of the projections."""
     T_cr = np.linalg.inv(T_rc.detach().cpu().numpy().astype(np.float64))
     points = reference.points_c @ T_cr[:3, :3].T + T_cr[:3, 3]  # [N, 3] current camera (NaN rows stay NaN)
     z = points[:, 2]
-    allowed = np.zeros((len(current.keypoints), len(points)), dtype=bool)
     in_front = np.flatnonzero(np.isfinite(points).all(axis=1) & (z > 0))
     if len(in_front) == 0 or len(current.keypoints) == 0:
-        return allowed
+        return np.zeros((0, 2), np.int64)
     projected = np.stack([intrinsics.fx * points[in_front, 0] / z[in_front] + intrinsics.cx,
                           intrinsics.fy * points[in_front, 1] / z[in_front] + intrinsics.cy], axis=1)  # [N', 2] px
     limit = radius * max(intrinsics.width, intrinsics.height)
     pairs = cKDTree(np.asarray(current.keypoints, dtype=np.float64)).sparse_distance_matrix(
         cKDTree(projected), limit, output_type="ndarray")  # (i: keypoint, j: projection, v: distance <= limit)
-    allowed[pairs["i"], in_front[pairs["j"]]] = True
-    return allowed
+    return np.stack([pairs["i"].astype(np.int64), in_front[pairs["j"]].astype(np.int64)], axis=1)
 
 
 def _solve(reference: FrameFeatures, current: FrameFeatures, intrinsics: Intrinsics, options: FeatureOptions,
-           allowed: np.ndarray | None) -> RelativePose:
+           candidates: np.ndarray | None) -> RelativePose:
     pairs = match_features(current.descriptors, reference.descriptors, options.ratio_test, options.max_hamming,
-                           allowed)
+                           candidates)
     if len(pairs):
         pairs = pairs[np.isfinite(reference.points_c[pairs[:, 1], 0])]
     if len(pairs) < max(6, options.min_inliers):
