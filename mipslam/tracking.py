@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import torch
@@ -110,26 +110,52 @@ class _Seen:
     T_cw: torch.Tensor
 
 
+@dataclass(frozen=True)
+class _StartView:
+    """One of best_start's renders: the map it rendered, the pose [4, 4] (the map's dtype, world-to-camera), the
+    map's frustum subset there and the render (tracking from that start reuses both)."""
+
+    gaussians: ActivatedGaussians
+    T_cw: torch.Tensor
+    subset: ActivatedGaussians
+    render: RenderOutput
+
+
+@dataclass
+class _FrameWork:
+    """What tracking builds once for a frame and every read of it shares (the start judge, tracking and its
+    retries): the pyramid and loss masks, the direct alignment's pyramid, and the start judge's renders."""
+
+    frame: Frame
+    levels: list[_Level]
+    direct_targets: list[DirectTarget] | None = None
+    starts: list[_StartView] = field(default_factory=list)
+
+    def start_view(self, gaussians: ActivatedGaussians, T_cw: torch.Tensor) -> _StartView | None:
+        """The start judge's render of ``gaussians`` at exactly ``T_cw``, if it made one."""
+        for view in self.starts:
+            if view.gaussians is gaussians and torch.equal(view.T_cw, T_cw):
+                return view
+        return None
+
+
 class Tracker:
     """Tracks frames against a frozen map (reads only the tracking and render config sections)."""
 
     def __init__(self, config: TrackingConfig, render_config: RenderConfig):
         self.config = config
         self.render_config = render_config
-        self._last_levels: tuple[Frame, list[_Level]] | None = None  # the pyramid of the frame tracked last
-        self._last_direct: tuple[Frame, list[DirectTarget]] | None = None  # its direct-alignment pyramid
-        # best_start's renders of the frame judged last, (T_cw [4, 4], render) each: the direct alignment's first
-        # render is the chosen candidate's
-        self._start_renders: tuple[Frame, list[tuple[torch.Tensor, RenderOutput]]] | None = None
+        self._work: _FrameWork | None = None  # of the frame tracked last
+
+    def _frame_work(self, frame: Frame) -> _FrameWork:
+        """The frame's shared work (:class:`_FrameWork`), started on the first read of a new frame."""
+        if self._work is None or self._work.frame is not frame:
+            self._work = _FrameWork(frame, self._build_levels(frame))
+        return self._work
 
     def _levels(self, frame: Frame) -> list[_Level]:
-        """The frame's image pyramid and loss masks, coarse to fine; built once per frame (the start judge,
-        tracking and its retries all read it)."""
-        if self._last_levels is not None and self._last_levels[0] is frame:
-            return self._last_levels[1]
-        levels = self._build_levels(frame)
-        self._last_levels = (frame, levels)
-        return levels
+        """The frame's image pyramid and loss masks, coarse to fine (built once per frame)."""
+        return self._frame_work(frame).levels
 
     def _build_levels(self, frame: Frame) -> list[_Level]:
         cfg = self.config
@@ -163,9 +189,10 @@ class Tracker:
     def _direct_targets(self, frame: Frame) -> list[DirectTarget]:
         """The frame's pyramid for the direct alignment, coarse to fine, the finest at tracking's finest level
         (built once per frame)."""
-        if self._last_direct is not None and self._last_direct[0] is frame:
-            return self._last_direct[1]
-        full = self._levels(frame)[-1]
+        work = self._frame_work(frame)
+        if work.direct_targets is not None:
+            return work.direct_targets
+        full = work.levels[-1]
         depth = torch.where(full.target_masks.depth, full.depth, 0.0)  # the depth term's pixels (tracking.max_depth)
         targets = []
         for scale in pyramid_scales(self.config.direct_levels):
@@ -174,7 +201,7 @@ class Tracker:
                 color, level_depth = resize_area(full.color, scale), resize_area(depth, scale, valid=depth > 0)
             K = full.intrinsics.scaled(scale).matrix(dtype=torch.float32, device=full.color.device)
             targets.append(direct_target(color, level_depth, K))
-        self._last_direct = (frame, targets)
+        work.direct_targets = targets
         return targets
 
     def _direct_references(self, color: torch.Tensor, depth: torch.Tensor, mask: torch.Tensor,
@@ -193,10 +220,12 @@ class Tracker:
         return references
 
     @torch.no_grad()
-    def _direct_alignment(self, gaussians: ActivatedGaussians, frame: Frame,
-                          T_cw: torch.Tensor) -> tuple[torch.Tensor, _Seen | None, int]:
+    def _direct_alignment(self, gaussians: ActivatedGaussians, frame: Frame, T_cw: torch.Tensor,
+                          start_map: ActivatedGaussians | None = None) -> tuple[torch.Tensor, _Seen | None, int]:
         """Direct RGB-D alignment of the map's render at ``T_cw`` [4, 4] float64 onto the frame
-        (``tracking.direct_*``; :func:`~mipslam.geometry.direct.align_direct`).
+        (``tracking.direct_*``; :func:`~mipslam.geometry.direct.align_direct`). ``gaussians`` is the frustum
+        subset tracking renders; the first render is the start judge's where it rendered ``start_map`` (the
+        whole map) at ``T_cw``.
 
         Returns the pose [4, 4] float64 (world-to-camera) the gradient steps start from, the render with the
         lowest loss seen on the way (None when none was finite) and the Gauss-Newton steps taken. Each render
@@ -210,7 +239,8 @@ class Tracker:
         best: _Seen | None = None
         steps = 0
         for round_index in range(cfg.direct_renders):
-            out = self._start_render(frame, T_cw.to(dtype)) if round_index == 0 else None
+            start = self._frame_work(frame).start_view(start_map, T_cw.to(dtype)) if round_index == 0 else None
+            out = start.render if start is not None else None
             if out is None:
                 out = render_view(gaussians, T_cw.to(dtype), full.intrinsics, self.render_config,
                                   mode=full.render_mode, pose_only=True)
@@ -246,15 +276,6 @@ class Tracker:
         ``tracking.coverage_opacity``)."""
         return int(((alpha >= self.config.coverage_opacity) & level.target_masks.depth).sum())
 
-    def _start_render(self, frame: Frame, T_cw: torch.Tensor) -> RenderOutput | None:
-        """best_start's render of ``frame`` at exactly ``T_cw`` [4, 4] (the map's dtype), if it made one."""
-        if self._start_renders is None or self._start_renders[0] is not frame:
-            return None
-        for T_rendered, out in self._start_renders[1]:
-            if torch.equal(T_rendered, T_cw):
-                return out
-        return None
-
     def _loss(self, gaussians: ActivatedGaussians, T_cw: torch.Tensor, level: _Level, exposure: torch.Tensor | None):
         """The loss of the map rendered at ``T_cw`` [4, 4] against ``level``, and the render's opacity [h, w]."""
         out = render_view(gaussians, T_cw, level.intrinsics, self.render_config, mode=level.render_mode,
@@ -284,10 +305,13 @@ class Tracker:
         # Pose algebra in float64 (a float32 product is orthonormal only to ~1e-7, and the motion model
         # would amplify that from frame to frame); only the renderer's input is cast to the map's dtype.
         T_cw_init = se3_inverse(T_wc_init.to(torch.float64)).to(device=device)
-        gaussians = frustum_subset(gaussians, T_cw_init.to(dtype), frame.intrinsics, self.render_config)
+        whole_map = gaussians
+        start = self._frame_work(frame).start_view(whole_map, T_cw_init.to(dtype))
+        gaussians = (start.subset if start is not None else
+                     frustum_subset(gaussians, T_cw_init.to(dtype), frame.intrinsics, self.render_config))
         seen, iterations = None, 0
         if cfg.direct_iterations > 0:
-            T_cw_init, seen, iterations = self._direct_alignment(gaussians, frame, T_cw_init)
+            T_cw_init, seen, iterations = self._direct_alignment(gaussians, frame, T_cw_init, whole_map)
         rho = torch.zeros(3, device=device, dtype=dtype, requires_grad=True)
         phi = torch.zeros(3, device=device, dtype=dtype, requires_grad=True)
         groups = [{"params": [rho], "lr": cfg.lr_translation}, {"params": [phi], "lr": cfg.lr_rotation}]
@@ -380,22 +404,21 @@ class Tracker:
         """
         if len(candidates) < 2:
             return 0
-        level = self._levels(frame)[-1]
+        work = self._frame_work(frame)
+        level = work.levels[-1]
         device, dtype = gaussians.means.device, gaussians.means.dtype
-        losses, renders = [], []
+        losses = []
         for T_wc in candidates:
             T_cw = se3_inverse(T_wc.to(torch.float64)).to(device=device, dtype=dtype)
             subset = frustum_subset(gaussians, T_cw, frame.intrinsics, self.render_config)
             out = render_view(subset, T_cw, level.intrinsics, self.render_config, mode=level.render_mode,
                               pose_only=True)
-            renders.append((T_cw, out))
+            # tracking from this start takes the same subset, and the direct alignment's first render is this one
+            work.starts.append(_StartView(gaussians, T_cw, subset, out))
             loss = self._loss_of_render(out, level, None)
             valid = loss.num_depth_pixels / max(1, level.depth.numel())
             value = float(loss.total)
             losses.append(value if math.isfinite(value) and valid >= self.config.min_valid_fraction else math.inf)
-        # tracking renders the chosen start again at the same pose and level (its subset is the same: tracking
-        # takes the frustum subset at its start pose), so the direct alignment reuses it
-        self._start_renders = (frame, renders) if self.config.direct_iterations > 0 else None
         best = 0
         for i in range(1, len(candidates)):
             if losses[i] < (1.0 - self.config.start_margin) * losses[best]:
