@@ -8,6 +8,7 @@ straddles. Tracking's coarse levels and the multi-scale evaluation's ground trut
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -17,8 +18,10 @@ from mipslam.errors import EvaluationError
 __all__ = ["resize_area"]
 
 
+@functools.lru_cache(maxsize=64)
 def _area_weights(size_in: int, size_out: int, factor: float, dtype, device) -> torch.Tensor:  # [out, in]
-    """Row-normalised overlap lengths of output pixel j = input interval [j/f, (j+1)/f] with input pixel i."""
+    """Row-normalised overlap lengths of output pixel j = input interval [j/f, (j+1)/f] with input pixel i.
+    Cached per size, factor, dtype and device (tracking resamples every frame at the same few); read-only."""
     lo = torch.arange(size_out, dtype=torch.float64, device=device) / factor  # [out]
     hi = lo + 1.0 / factor
     edges = torch.arange(size_in, dtype=torch.float64, device=device)  # [in]
