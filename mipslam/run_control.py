@@ -25,7 +25,7 @@ from tqdm import tqdm
 from mipslam.checkpoint import load_latest_checkpoint, save_checkpoint
 from mipslam.config import Config, config_to_dict, config_to_yaml
 from mipslam.datasets import RGBDSequence, StreamEnded, make_sequence
-from mipslam.errors import CheckpointError, ConfigError, DatasetError
+from mipslam.errors import CheckpointError, ConfigError, DatasetError, MipslamError
 from mipslam.heap import release_free_heap, set_mmap_threshold
 from mipslam.io.run_folder import RunFolder, write_text_atomic
 from mipslam.observer import Observer
@@ -103,12 +103,20 @@ def prepare_run(config: Config, run_dir: str | Path, *, resume: bool, observer: 
 
 
 def warm_up(config: Config, device: torch.device) -> None:
-    """Load the renderer's compiled CPU backend (built at install; never compiled here) before the first frame,
-    so no stage's time includes it."""
+    """Load the renderer's compiled CPU backend (built at install; never compiled here) and, where a stage
+    registers RGB-D frames with it, Open3D (an import of about a second) before the first frame, so no stage's
+    time includes them. A missing Open3D is reported by the stage that needs it."""
     from mipslam.render.cpu import warm_up as warm_up_renderer
 
     if config.render.backend != "torch" and device.type == "cpu":
         warm_up_renderer()
+    if config.loop.enabled or config.tracking.dense_start or config.tracking.relocalise_loss_ratio > 0:
+        from mipslam.loop.registration import load_open3d
+
+        try:
+            load_open3d()
+        except MipslamError as exc:
+            log.debug("Open3D not loaded at set-up: %s", exc)
 
 
 def write_checkpoint(folder: RunFolder, state: SLAMState, config: Config, observer: Observer) -> Path:

@@ -33,12 +33,11 @@ from mipslam.errors import MipslamError
 from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry import nearest_rigid, resize_area
 from mipslam.frontend import Frontend, FrontendStart
-from mipslam.geometry.direct import (DirectReference, DirectTarget, align_direct, direct_reference,
-                                     direct_target, pyramid_scales)
+from mipslam.geometry.direct import DirectReference, DirectTarget, direct_reference, direct_target, pyramid_scales
 from mipslam.geometry.se3 import se3_exp, se3_inverse, se3_log
 from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, image_gradient_mask, rgbd_l1_loss, rgbd_masks
 from mipslam.loop.registration import RegistrationOptions, register_rgbd_odometry
-from mipslam.render import RenderOutput, available_backends
+from mipslam.render import RenderOutput, direct_aligner
 from mipslam.rendering import frustum_subset, render_view
 from mipslam.types import Frame, Intrinsics
 
@@ -257,7 +256,7 @@ class Tracker:
             depth = torch.where(opaque, depth, 0.0)
             references = self._direct_references(out.color, depth, opaque, full.intrinsics)
             eye = torch.eye(4, dtype=torch.float64)
-            align = _direct_aligner(self.render_config.backend, out.color.device)
+            align = direct_aligner(self.render_config.backend, out.color.device)
             result = align(references, targets, eye, iterations=cfg.direct_iterations,
                            alpha_color=cfg.direct_alpha_color, convergence=cfg.direct_convergence)
             steps += result.iterations
@@ -429,17 +428,6 @@ class Tracker:
     def _failed(T_wc_init: torch.Tensor, iterations: int, status: str, loss: float, valid_fraction: float) -> TrackingResult:
         return TrackingResult(T_wc_init.detach().to(torch.float64).cpu().clone(), torch.zeros(2), loss, iterations,
                               valid_fraction, False, status)
-
-
-def _direct_aligner(backend: str, device: torch.device):
-    """The direct alignment to run: the compiled one (:func:`mipslam.render.cpu.align_direct`) where the
-    renderer's ``backend`` setting takes the compiled CPU library and it is built, for CPU tensors; else the
-    torch reference (:func:`~mipslam.geometry.direct.align_direct`, any device). Both take the same arguments."""
-    if backend != "torch" and device.type == "cpu" and "cpu" in available_backends():
-        from mipslam.render.cpu import align_direct as compiled
-
-        return compiled
-    return align_direct
 
 
 def _pose_optimizer(cfg: TrackingConfig, groups: list[dict]) -> torch.optim.Optimizer:

@@ -168,7 +168,41 @@ def test_matching_is_mutual_and_ratio_tested():
     assert 0 not in match_features(query, duplicated, ratio=0.85, max_hamming=64)[:, 0].tolist()
     allowed = np.ones((3, 50), bool)
     allowed[1, 7] = False  # the guided search does not let query 1 reach its twin
-    assert [1, 7] not in match_features(query, train, ratio=0.85, max_hamming=64, allowed=allowed).tolist()
+    candidates = np.argwhere(allowed)
+    assert [1, 7] not in match_features(query, train, ratio=0.85, max_hamming=64, candidates=candidates).tolist()
+
+
+def _masked_brute_force(query, train, ratio, max_hamming, allowed):
+    """OpenCV's brute-force matcher with a mask, and the same mutual and ratio tests (the guided search's
+    former implementation): the reference of the candidate-pair matcher."""
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+    forward = matcher.knnMatch(query, train, k=2, mask=allowed.astype(np.uint8))
+    backward = {m.queryIdx: m.trainIdx for m in matcher.match(train, query, mask=allowed.T.astype(np.uint8).copy())}
+    pairs = []
+    for nearest in forward:
+        if not nearest:
+            continue
+        best = nearest[0]
+        if best.distance > max_hamming or (len(nearest) > 1 and best.distance >= ratio * nearest[1].distance):
+            continue
+        if backward.get(best.trainIdx) == best.queryIdx:
+            pairs.append((best.queryIdx, best.trainIdx))
+    return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+
+
+def test_matching_among_candidate_pairs_equals_opencvs_masked_brute_force():
+    # descriptors of few distinct bits: many equal distances, so the tie-breaking must match OpenCV's too
+    rng = np.random.default_rng(1)
+    for _ in range(60):
+        m, n = rng.integers(2, 40, size=2)
+        bits = int(rng.integers(1, 6))
+        query = rng.integers(0, 2 ** bits, size=(m, 32)).astype(np.uint8)
+        train = rng.integers(0, 2 ** bits, size=(n, 32)).astype(np.uint8)
+        allowed = rng.random((m, n)) < rng.uniform(0.05, 1.0)
+        for ratio, max_hamming in ((0.85, 64), (1.0, 30)):
+            expected = _masked_brute_force(query, train, ratio, max_hamming, allowed)
+            got = match_features(query, train, ratio, max_hamming, candidates=np.argwhere(allowed))
+            np.testing.assert_array_equal(got, expected)
 
 
 # ----------------------------------------------------------------------------- with the tracker and the pipeline

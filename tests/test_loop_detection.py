@@ -151,21 +151,23 @@ def _pose_error(T_est: torch.Tensor, T_true: torch.Tensor) -> tuple[float, float
     return float(E[:3, 3].norm()), math.degrees(float(rotation_angle(E[:3, :3])))
 
 
-def test_registration_recovers_a_known_relative_pose():
+@pytest.mark.parametrize("options", [ICP, RegistrationOptions(method="direct"), RegistrationOptions(method="rgbd_odometry")],
+                         ids=["point_to_plane", "direct", "rgbd_odometry"])
+def test_registration_recovers_a_known_relative_pose(options):
     T_wi, T_wj = camera_pose([0.0, 0.0, -1.0], 0.0), camera_pose([0.15, 0.05, -0.8], 6.0, 2.0)
     color_i, depth_i = render_view(T_wi, LARGE)
     color_j, depth_j = render_view(T_wj, LARGE)
     T_ij_true = se3_inverse(T_wi) @ T_wj
     guess = T_ij_true @ se3_exp(torch.tensor([0.08, -0.05, 0.04, 0.03, -0.05, 0.02], dtype=F64))  # ~8 cm, ~3.5 deg off
     err_guess = _pose_error(guess, T_ij_true)
-    result = register_rgbd_pair(color_i, depth_i, color_j, depth_j, LARGE, guess, ICP)
+    result = register_rgbd_pair(color_i, depth_i, color_j, depth_j, LARGE, guess, options)
     assert result.accepted, result.reason
     err_t, err_deg = _pose_error(result.T_ij, T_ij_true)
     assert err_guess[0] > 0.08 and err_guess[1] > 3.0
     # sub-pixel: one pixel spans 2-3 cm at the 2-4 m depths of these 160 x 120 views
     assert err_t < 0.02 and err_deg < 0.5
     assert err_t < 0.2 * err_guess[0] and err_deg < 0.2 * err_guess[1]
-    assert result.fitness > 0.6 and result.inlier_rmse_m < ICP.rmse_threshold
+    assert result.fitness > 0.6 and result.inlier_rmse_m < options.rmse_threshold
     # the information is symmetric positive definite and usable as a pose-graph edge as is
     info = result.information
     assert torch.allclose(info, info.T) and float(torch.linalg.eigvalsh(info).min()) > 0
@@ -190,20 +192,23 @@ def test_open3d_information_is_converted_to_the_residual_frame():
     assert torch.allclose(converted, expected, rtol=1e-9, atol=1e-6)
 
 
-def test_registration_rejects_a_wrong_pair():
+@pytest.mark.parametrize("method", ["point_to_plane", "direct"])
+def test_registration_rejects_a_wrong_pair(method):
     T_wi = camera_pose([0.0, 0.0, -1.0], 0.0)
     T_wj = camera_pose([0.0, 0.0, 1.0], 180.0)  # looks at the opposite wall: no overlap
     color_i, depth_i = render_view(T_wi, SMALL)
     color_j, depth_j = render_view(T_wj, SMALL)
     claimed = torch.eye(4, dtype=F64)  # a wrong "loop" claiming both views coincide
     result = register_rgbd_pair(color_i, depth_i, color_j, depth_j, SMALL, claimed,
-                                RegistrationOptions(voxel_sizes=(0.1, 0.05), iterations=(30, 30)))
+                                RegistrationOptions(method=method, voxel_sizes=(0.1, 0.05), iterations=(30, 30)))
     assert not result.accepted
     assert result.reason
     assert float(result.information.abs().max()) == 0.0
 
 
-def test_registration_rejects_frames_without_depth():
+@pytest.mark.parametrize("method", ["point_to_plane", "direct"])
+def test_registration_rejects_frames_without_depth(method):
     color, depth = render_view(camera_pose([0.0, 0.0, -1.0], 0.0), SMALL)
-    result = register_rgbd_pair(color, torch.zeros_like(depth), color, depth, SMALL, torch.eye(4, dtype=F64))
+    result = register_rgbd_pair(color, torch.zeros_like(depth), color, depth, SMALL, torch.eye(4, dtype=F64),
+                                RegistrationOptions(method=method))
     assert not result.accepted and "too few" in result.reason

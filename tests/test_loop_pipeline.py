@@ -434,9 +434,9 @@ def test_resume_is_bit_identical_where_small_splats_amplify_round_off(drift_sequ
     # the map: Open3D's multi-threaded reductions made registration differ between runs. Open3D now
     # runs on one thread, and a resumed run equals the uninterrupted one exactly. The race showed in
     # 2 of 2 runs with a checkpoint every frame but does not show every time, so the setting is pinned too.
-    from mipslam.loop.registration import _open3d
+    from mipslam.loop.registration import load_open3d
 
-    assert _open3d().utility.get_max_threads() == 1
+    assert load_open3d().utility.get_max_threads() == 1
     small = "mapping.initial_scale_factor=0.7"
     drift_run(drift_sequence, tmp_path / "full", small)
     # split between the keyframes whose loop edges wait for confirmation and the one that confirms them: the
@@ -455,13 +455,14 @@ def test_resume_is_bit_identical_where_small_splats_amplify_round_off(drift_sequ
 # ----------------------------------------------------------------------------- verification
 
 
-def test_dense_rgbd_alignment_recovers_loop_poses_on_a_textured_wall(drift_sequence):
+@pytest.mark.parametrize("method", ["direct", "rgbd_odometry"])
+def test_dense_rgbd_alignment_recovers_loop_poses_on_a_textured_wall(drift_sequence, method):
     from mipslam.loop.from_config import registration_options
     from mipslam.loop.registration import register_rgbd_pair
 
     config = drift_config(drift_sequence)
-    options = registration_options(config.loop)
-    assert options.method == "rgbd_odometry"  # the default
+    assert registration_options(config.loop).method == "direct"  # the default
+    options = replace(registration_options(config.loop), method=method)
     sequence = make_sequence(config.dataset)
     gt = sequence.gt_T_wc
     # Start 7 cm / 2.4 deg off. Point-to-plane ICP slides along the wall here (errors of decimetres to

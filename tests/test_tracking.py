@@ -303,7 +303,7 @@ def test_a_direct_alignment_that_renders_worse_ends_at_the_best_render(one_frame
     def misaligned(references, targets, T_init, **kwargs):  # an alignment that walks 5 cm off every time
         return DirectResult(T=away, iterations=3, points=100, ok=True)
 
-    monkeypatch.setattr(tracking, "_direct_aligner", lambda backend, device: misaligned)
+    monkeypatch.setattr(tracking, "direct_aligner", lambda backend, device: misaligned)
     T_cw_true = se3_inverse(T_wc_true)
     T_cw, seen, steps = tracker._direct_alignment(gaussians, frame, T_cw_true)
     # the second render (5 cm off) explains the frame worse than the first: the alignment stops at the first
@@ -315,13 +315,14 @@ def test_a_direct_alignment_that_renders_worse_ends_at_the_best_render(one_frame
 def test_the_direct_alignment_runs_compiled_where_the_render_backend_does():
     from mipslam.geometry.direct import align_direct as reference
     from mipslam.render import cpu as cpu_backend
+    from mipslam.render import direct_aligner
 
     cpu = torch.device("cpu")
-    assert tracking._direct_aligner("torch", cpu) is reference
-    assert tracking._direct_aligner("auto", torch.device("meta")) is reference  # not a CPU tensor: torch
+    assert direct_aligner("torch", cpu) is reference
+    assert direct_aligner("auto", torch.device("meta")) is reference  # not a CPU tensor: torch
     expected = cpu_backend.align_direct if cpu_backend.is_available() else reference
-    assert tracking._direct_aligner("auto", cpu) is expected
-    assert tracking._direct_aligner("cpu", cpu) is expected
+    assert direct_aligner("auto", cpu) is expected
+    assert direct_aligner("cpu", cpu) is expected
 
 
 def test_the_direct_alignment_reuses_the_start_judges_render_of_the_chosen_start(one_frame_map_128, monkeypatch):

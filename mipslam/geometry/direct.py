@@ -294,6 +294,18 @@ def align_direct(
     return DirectResult(T=T, iterations=steps, points=points, ok=ran and bool(torch.isfinite(T).all()))
 
 
+def intensity_scale(reference: DirectReference, target: DirectTarget, T: torch.Tensor) -> tuple[float, int]:
+    """The intensity term's robust scale (MAD_TO_SIGMA x the median absolute residual, the brightness offset
+    removed) at motion T [4, 4] float64, and the points it was measured on: how well the views' intensities
+    agree once aligned (a loop check: surfaces of equal shape and different texture align in depth alone).
+    An intensity in [0, 1]; inf where no point lands in the target."""
+    res = _residuals(reference, target, T.to(torch.float64).cpu())
+    kept = res.color[res.color_mask]
+    if kept.numel() == 0:
+        return math.inf, 0
+    return MAD_TO_SIGMA * float(kept.abs().median()), int(kept.numel())
+
+
 def pyramid_scales(levels: int) -> list[float]:
     """Scales of ``levels`` pyramid levels, coarse to fine, each half the next: 3 -> [0.25, 0.5, 1.0]."""
     if levels < 1:

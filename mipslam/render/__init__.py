@@ -25,7 +25,7 @@ from mipslam.render.projection import ProjectedGaussians, project_gaussians
 from mipslam.render.rasterize_torch import FootprintSettings, rasterize_projected
 
 __all__ = ["rasterize", "render", "RenderOptions", "render_option_problems", "RenderOutput", "Camera", "MODES", "BACKENDS",
-           "available_backends", "project_gaussians", "ProjectedGaussians"]
+           "available_backends", "direct_aligner", "project_gaussians", "ProjectedGaussians"]
 
 log = logging.getLogger(__name__)
 
@@ -171,6 +171,19 @@ def _cpu_backend_module():
 def available_backends() -> tuple[str, ...]:
     """Backends usable on this machine (``torch`` always)."""
     return ("torch", "cpu") if _cpu_backend_module() is not None else ("torch",)
+
+
+def direct_aligner(backend: str, device: torch.device):
+    """The direct RGB-D alignment for tensors on ``device``: the compiled one
+    (:func:`mipslam.render.cpu.align_direct`) where ``backend`` (``render.backend``: auto, torch or cpu) takes the
+    compiled CPU library and it is built, else the torch reference (:func:`mipslam.geometry.direct.align_direct`,
+    any device). Both take the same arguments and return a :class:`~mipslam.geometry.direct.DirectResult`."""
+    cpu = _cpu_backend_module() if backend != "torch" and device.type == "cpu" else None
+    if cpu is not None:
+        return cpu.align_direct
+    from mipslam.geometry.direct import align_direct
+
+    return align_direct
 
 
 def _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height):
