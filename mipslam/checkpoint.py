@@ -69,6 +69,7 @@ RESUME_FREE_KEYS: tuple[str, ...] = (
     "run.release_memory_every",
     "run.mmap_threshold_kib",
     "run.diagnostics",
+    "run.keyframe_cache_mib",
     "dataset.max_frames",
     "eval",
 )

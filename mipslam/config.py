@@ -62,12 +62,16 @@ class RunConfig:
     # Measurements that cost time and change no result (the map's PSNR at the loop's keyframes around each loop
     # correction, in loops.json); off, a run renders nothing it does not need.
     diagnostics: bool = False
+    # keyframes' images kept in memory for mapping and loop verification (MiB; 0 = read them again from the
+    # sequence each time): a 320x240 keyframe takes 1.2 MiB
+    keyframe_cache_mib: int = 256
 
     def __post_init__(self):
         _check(self.threads >= 0, "run.threads", "must be >= 0 (0 = torch default)")
         _check(self.checkpoint_every >= 0, "run.checkpoint_every", "must be >= 0")
         _check(self.keep_checkpoints >= 1, "run.keep_checkpoints", "must be >= 1")
         _check(self.release_memory_every >= 0, "run.release_memory_every", "must be >= 0 (0 = never)")
+        _check(self.keyframe_cache_mib >= 0, "run.keyframe_cache_mib", "must be >= 0 (0 = no keyframe cache)")
         _check(0 <= self.mmap_threshold_kib <= 32768, "run.mmap_threshold_kib",
                "must be in [0, 32768] KiB (0 = the C library's default)")
 

@@ -243,6 +243,7 @@ def insert_keyframe(config: KeyframeConfig, state: "SLAMState", frames: "FrameCa
     covisibility with the new keyframe and draw ``random_past`` older keyframes with the run's generator.
     Returns the keyframes to map over: the window (newest first), then the past ones (ascending)."""
     state.keyframe_frames.append(len(state.frames) - 1)
+    frames.keep(record.index)  # mapping's past views and loop verification read keyframes again
     frame = frames[record.index]
     overlaps = {}
     for kf in state.window:

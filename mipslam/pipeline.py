@@ -75,7 +75,8 @@ class Stages:
         loop = (LoopCloser(config.loop, verification_hook=hooks.loop_verification, observer=observer)
                 if config.loop.enabled else None)
         observer.declare("read", "tracking", "keyframe", "mapping", *(("loop", "pgo") if loop is not None else ()))
-        frames = FrameCache(sequence, device, capacity, read_ahead=sequence.random_access)
+        frames = FrameCache(sequence, device, capacity, read_ahead=sequence.random_access,
+                            kept_bytes=config.run.keyframe_cache_mib * 2**20)
         observer.attach(frames)
         frontend = Frontend(config.frontend) if config.frontend.method != "none" else None
         return cls(Tracker(config.tracking, config.render), Mapper(config.mapping, config.render), config.keyframes,

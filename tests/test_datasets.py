@@ -542,6 +542,41 @@ def test_frame_cache_reads_ahead_once_and_gives_the_same_frames(tmp_path):
     assert torch.equal(cache[0].depth, sequence[0].depth)  # after close: read in the caller's thread
 
 
+def test_kept_frames_are_not_read_again_within_the_byte_budget(tmp_path):
+    from mipslam.datasets import FrameCache
+
+    write_replica(tmp_path / "rep")
+    sequence = make_sequence(DatasetConfig(kind="replica", path=str(tmp_path / "rep")))
+    reads = []
+
+    class Counting:
+        random_access = False
+
+        def __len__(self):
+            return len(sequence)
+
+        def __getitem__(self, index):
+            reads.append(index)
+            return sequence[index]
+
+    frame_bytes = sequence[0].color.numel() * 4 + sequence[0].depth.numel() * 4
+    cache = FrameCache(Counting(), torch.device("cpu"), capacity=1, kept_bytes=2 * frame_bytes)
+    for index in range(len(sequence)):
+        cache[index]
+        if index < 3:
+            cache.keep(index)  # three keyframes; the budget holds the newest two
+    reads.clear()
+    assert torch.equal(cache[1].color, sequence[1].color) and torch.equal(cache[2].depth, sequence[2].depth)
+    assert reads == []
+    cache[0]  # dropped from the kept frames: read again, with the same values
+    assert reads == [0]
+    unbounded = FrameCache(Counting(), torch.device("cpu"), capacity=1, kept_bytes=0)
+    unbounded.keep(0)
+    reads.clear()
+    unbounded[1], unbounded[0]
+    assert reads == [1, 0]  # no budget: nothing is kept
+
+
 def test_frame_cache_read_ahead_error_surfaces_when_the_frame_is_asked_for(tmp_path):
     from mipslam.datasets import FrameCache
 

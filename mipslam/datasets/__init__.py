@@ -55,20 +55,31 @@ def make_sequence(cfg: DatasetConfig) -> RGBDSequence:
     raise DatasetError(root, f"unknown dataset kind {cfg.kind!r}; use replica, tum, synthetic, realsense or realsense_bag")
 
 
+def _frame_bytes(frame: Frame) -> int:
+    return frame.color.numel() * frame.color.element_size() + frame.depth.numel() * frame.depth.element_size()
+
+
 class FrameCache:
     """The last ``capacity`` frames read from ``sequence``, moved to ``device``: ``cache[index]`` -> Frame.
 
     Colour [H, W, 3] and depth [H, W] (metres) are on ``device``; a frame read again after it left the
-    cache is read again from the sequence (same values: readers are deterministic).
+    cache is read again from the sequence (same values: readers are deterministic). Frames passed to
+    :meth:`keep` (keyframes) stay beyond the last ``capacity``, up to ``kept_bytes`` of images.
 
     ``read_ahead``: :meth:`prefetch` reads a frame on one background thread while the caller works (decoding
     and downscaling release the GIL), so the frame loop does not wait for the disk. A camera's sequence must
     not read ahead (its reader delivers the newest frame when asked). Errors surface when the frame is asked for.
     """
 
-    def __init__(self, sequence: RGBDSequence, device: torch.device, capacity: int, *, read_ahead: bool = False):
+    def __init__(self, sequence: RGBDSequence, device: torch.device, capacity: int, *, read_ahead: bool = False,
+                 kept_bytes: int = 0):
         self.sequence, self.device, self.capacity = sequence, device, max(1, capacity)
         self._frames: OrderedDict[int, Frame] = OrderedDict()
+        # frames the caller asked to keep (keyframes: loop verification re-reads old ones), least recently used
+        # first, up to kept_bytes of images
+        self.kept_bytes = max(0, kept_bytes)
+        self._kept: OrderedDict[int, Frame] = OrderedDict()
+        self._kept_size = 0
         self._reader = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mipslam-read") if read_ahead else None
         self._pending: dict[int, Future] = {}
 
@@ -84,10 +95,28 @@ class FrameCache:
             return
         self._pending[index] = self._reader.submit(self._read, index)
 
+    def keep(self, index: int) -> None:
+        """Keep frame ``index`` beyond the last ``capacity`` frames, within ``kept_bytes`` (the least recently
+        used kept frame goes first); read now if it is not in memory."""
+        if self.kept_bytes == 0 or index in self._kept:
+            return
+        frame = self[index]
+        size = _frame_bytes(frame)
+        if size > self.kept_bytes:
+            return
+        self._kept[index] = frame
+        self._kept_size += size
+        while self._kept_size > self.kept_bytes:
+            _, dropped = self._kept.popitem(last=False)
+            self._kept_size -= _frame_bytes(dropped)
+
     def __getitem__(self, index: int) -> Frame:
         if index in self._frames:
             self._frames.move_to_end(index)
             return self._frames[index]
+        if index in self._kept:
+            self._kept.move_to_end(index)
+            return self._kept[index]
         pending = self._pending.pop(index, None)
         frame = pending.result() if pending is not None else self._read(index)
         self._frames[index] = frame
