@@ -213,7 +213,7 @@ def align_direct(references, targets, T_init: torch.Tensor, *, iterations: int, 
                  convergence: float = 1e-5):
     """:func:`mipslam.geometry.direct.align_direct` in C++ (direct_align.h): the same arguments, objective and
     step control, float64 normal equations; CPU float32 references and targets. Equals the reference to
-    rounding (tests/test_direct_compiled.py). -> :class:`~mipslam.geometry.direct.DirectResult`"""
+    rounding (tests/test_direct_alignment.py), whatever the thread count. -> :class:`~mipslam.geometry.direct.DirectResult`"""
     if len(references) != len(targets):
         raise ValueError(f"align_direct: {len(references)} reference levels against {len(targets)} target levels")
     levels = []
@@ -222,6 +222,6 @@ def align_direct(references, targets, T_init: torch.Tensor, *, iterations: int, 
         levels.append((reference.points.contiguous(), reference.intensity.contiguous(), target.channels[0],
                        (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))))
     T, steps, points, ran = load_extension().direct_align(levels, T_init, iterations, alpha_color, convergence,
-                                                          _DIRECT_CONSTANTS)
+                                                          _DIRECT_CONSTANTS, torch.get_num_threads())
     return direct_reference.DirectResult(T=T, iterations=steps, points=points,
                                          ok=ran and bool(torch.isfinite(T).all()))

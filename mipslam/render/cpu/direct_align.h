@@ -2,7 +2,9 @@
 // image pyramid. The compiled twin of mipslam/geometry/direct.py's align_direct (the readable reference it is
 // tested against, tests/test_direct_alignment.py): the same objective, robust scales, step control and
 // constants (passed in from Python), with float32 residuals as there; sums in float over blocks of points,
-// added up in float64. Serial: at tracking's sizes (about 20k points) a parallel region costs more than it saves.
+// added up in float64. The per-point work (residuals, block sums) runs on ``threads`` threads for levels of at
+// least PARALLEL_MIN points: every block is summed as in a serial run and the blocks are added up in order, so the
+// result's bits do not depend on the thread count; the medians stay serial.
 //
 // Conventions as there: T is the target camera from the reference camera, [4, 4] row-major float64; a point
 // X' = T X projects to u' = (fx x / z + cx, fy y / z + cy) with pixel centres at integer coordinates; the
@@ -16,10 +18,15 @@
 #include <cstdint>
 #include <vector>
 
+#include <omp.h>
+
 #include "check.h"
 
 namespace mipslam_cpu {
 namespace direct {
+
+// Levels with fewer points run serially (a parallel region costs more than it saves there).
+constexpr int64_t PARALLEL_MIN = 4096;
 
 // Order of the constants vector (mipslam/render/cpu/backend.py, _DIRECT_CONSTANTS).
 enum Constant { HUBER_K, MAD_TO_SIGMA, MIN_SCALE_INTENSITY, MIN_SCALE_DEPTH, MAX_HALVINGS, MIN_POINTS,
@@ -92,7 +99,7 @@ static inline void sample_channels(const Level& L, const float* pixels, float u,
 // The residuals of both terms at motion T (float32 maths, as the reference), the intensity term's median
 // offset removed (a brightness change between the views is not motion).
 static void evaluate(const Level& L, const float* pixels, const double T[16], Residuals* res,
-                     std::vector<float>* scratch) {
+                     std::vector<float>* scratch, int threads) {
     const float R[9] = {(float)T[0], (float)T[1], (float)T[2], (float)T[4], (float)T[5],
                         (float)T[6], (float)T[8], (float)T[9], (float)T[10]};
     const float t[3] = {(float)T[3], (float)T[7], (float)T[11]};
@@ -100,6 +107,7 @@ static void evaluate(const Level& L, const float* pixels, const double T[16], Re
     res->resize(n);
     const float max_u = (float)(L.width - 1), max_v = (float)(L.height - 1);
     int64_t count_c = 0, count_d = 0;
+#pragma omp parallel for schedule(static) num_threads(threads) if (n >= PARALLEL_MIN) reduction(+ : count_c, count_d)
     for (int64_t i = 0; i < n; ++i) {
         const float px = L.points[3 * i], py = L.points[3 * i + 1], pz = L.points[3 * i + 2];
         const float x = R[0] * px + R[1] * py + R[2] * pz + t[0];
@@ -140,6 +148,7 @@ static void evaluate(const Level& L, const float* pixels, const double T[16], Re
         for (int64_t i = 0; i < n; ++i)
             if (res->mc[i]) scratch->push_back(res->rc[i]);
         const float offset = lower_median(scratch->data(), (int64_t)scratch->size());
+#pragma omp parallel for schedule(static) num_threads(threads) if (n >= PARALLEL_MIN)
         for (int64_t i = 0; i < n; ++i) res->rc[i] -= offset;
     }
 }
@@ -170,21 +179,26 @@ static inline void terms_of(const Residuals& res, double alpha, const double sca
 }
 
 // Sums body(i, partial) over i in [0, n) into out[K]: float partial sums over blocks of BLOCK points (the
-// compiler keeps them in registers), added up in float64.
+// compiler keeps them in registers), added up in float64 in block order whatever the thread count.
 template <int K, typename Body>
-static void blocked_sum(int64_t n, double out[K], Body&& body) {
+static void blocked_sum(int64_t n, int threads, double out[K], Body&& body) {
     constexpr int64_t BLOCK = 256;
-    std::fill(out, out + K, 0.0);
-    for (int64_t start = 0; start < n; start += BLOCK) {
+    const int64_t blocks = (n + BLOCK - 1) / BLOCK;
+    std::vector<float> partials((size_t)(blocks * K), 0.f);
+#pragma omp parallel for schedule(static) num_threads(threads) if (n >= PARALLEL_MIN)
+    for (int64_t block = 0; block < blocks; ++block) {
         float partial[K] = {0.f};
-        const int64_t end = std::min(n, start + BLOCK);
-        for (int64_t i = start; i < end; ++i) body(i, partial);
-        for (int k = 0; k < K; ++k) out[k] += partial[k];
+        const int64_t end = std::min(n, (block + 1) * BLOCK);
+        for (int64_t i = block * BLOCK; i < end; ++i) body(i, partial);
+        std::copy(partial, partial + K, partials.begin() + block * K);
     }
+    std::fill(out, out + K, 0.0);
+    for (int64_t block = 0; block < blocks; ++block)
+        for (int k = 0; k < K; ++k) out[k] += partials[(size_t)(block * K + k)];
 }
 
 // The weighted objective at fixed scales: Huber's rho averaged over each term's points.
-static double cost(const Residuals& res, double alpha, const double scales[2], const double* C) {
+static double cost(const Residuals& res, double alpha, const double scales[2], const double* C, int threads) {
     Term terms[2];
     terms_of(res, alpha, scales, terms);
     const float k = (float)C[HUBER_K];
@@ -195,7 +209,7 @@ static double cost(const Residuals& res, double alpha, const double scales[2], c
         const std::vector<float>& r = *term.r;
         const std::vector<uint8_t>& mask = *term.mask;
         double sum[1];
-        blocked_sum<1>((int64_t)r.size(), sum, [&](int64_t i, float* local) {
+        blocked_sum<1>((int64_t)r.size(), threads, sum, [&](int64_t i, float* local) {
             const float a = std::fabs(r[i] / scale);
             const float rho = a <= k ? 0.5f * a * a : k * (a - 0.5f * k);
             local[0] += mask[i] ? rho : 0.f;
@@ -207,7 +221,7 @@ static double cost(const Residuals& res, double alpha, const double scales[2], c
 
 // H [6, 6] and b [6] of the IRLS step at fixed scales (delta = -H^-1 b); Jacobian rows [g, X' x g].
 static void normal_equations(const Residuals& res, double alpha, const double scales[2], const double* C,
-                             double H[36], double b[6]) {
+                             int threads, double H[36], double b[6]) {
     std::fill(H, H + 36, 0.0);
     std::fill(b, b + 6, 0.0);
     Term terms[2];
@@ -222,7 +236,7 @@ static void normal_equations(const Residuals& res, double alpha, const double sc
         const std::vector<float>&gx = *term.gx, &gy = *term.gy, &gz = *term.gz;
         double acc[27];  // the upper triangle of H (21 entries, row by row), then b (6); Huber weights, the
                          // term's factor applied after the sum
-        blocked_sum<27>((int64_t)r.size(), acc, [&](int64_t i, float* local) {
+        blocked_sum<27>((int64_t)r.size(), threads, acc, [&](int64_t i, float* local) {
             const float a = std::fabs(r[i] / scale);
             const float w = mask[i] ? (a <= k ? 1.f : k / std::max(a, 1e-12f)) : 0.f;
             const float X = res.x[i], Y = res.y[i], Z = res.z[i];
@@ -322,7 +336,7 @@ struct Outcome {
 // Coarse to fine over the levels: Gauss-Newton steps (at most ``iterations`` a level) at robust scales fixed
 // per step, each accepted only if it lowers the cost (halved up to MAX_HALVINGS times otherwise).
 static Outcome align(const std::vector<Level>& levels, double T[16], int64_t iterations, double alpha,
-                     double convergence, const double* C) {
+                     double convergence, const double* C, int threads) {
     Outcome outcome;
     Residuals res, after;
     std::vector<float> scratch;
@@ -330,14 +344,14 @@ static Outcome align(const std::vector<Level>& levels, double T[16], int64_t ite
     for (const Level& L : levels) {
         if (L.n < min_points) continue;
         const std::vector<float> pixels = interleave(L);
-        evaluate(L, pixels.data(), T, &res, &scratch);
+        evaluate(L, pixels.data(), T, &res, &scratch, threads);
         for (int64_t it = 0; it < iterations; ++it) {
             if (res.count() < min_points) break;
             const double scales[2] = {
                 robust_scale(res.rc, res.mc, C[MAD_TO_SIGMA], C[MIN_SCALE_INTENSITY], &scratch),
                 robust_scale(res.rd, res.md, C[MAD_TO_SIGMA], C[MIN_SCALE_DEPTH], &scratch)};
             double H[36], b[6], delta[6];
-            normal_equations(res, alpha, scales, C, H, b);
+            normal_equations(res, alpha, scales, C, threads, H, b);
             double diag = 0.0;
             for (int p = 0; p < 6; ++p) diag = std::max(diag, std::fabs(H[7 * p]));
             for (int p = 0; p < 6; ++p) H[7 * p] += 1e-9 * std::max(diag, 1e-12);
@@ -346,13 +360,13 @@ static Outcome align(const std::vector<Level>& levels, double T[16], int64_t ite
             if (!solve6(H, minus_b, delta)) break;
             outcome.ran = true;
             outcome.points = res.count();
-            const double before = cost(res, alpha, scales, C);
+            const double before = cost(res, alpha, scales, C, threads);
             bool accepted = false;
             double candidate[16];
             for (int64_t h = 0; h <= (int64_t)C[MAX_HALVINGS]; ++h) {
                 exp_times(delta, T, C[SERIES_ANGLE_SQ], candidate);
-                evaluate(L, pixels.data(), candidate, &after, &scratch);
-                if (after.count() >= min_points && cost(after, alpha, scales, C) < before) {
+                evaluate(L, pixels.data(), candidate, &after, &scratch, threads);
+                if (after.count() >= min_points && cost(after, alpha, scales, C, threads) < before) {
                     accepted = true;
                     break;
                 }

@@ -29,7 +29,7 @@ from mipslam.errors import BackendUnavailableError, RenderError
 log = logging.getLogger("mipslam.render.cpu")
 
 #: The C interface version this module speaks (mipslam_abi_version in raster_ext.cpp).
-ABI_VERSION = 2
+ABI_VERSION = 3
 _ERROR_BYTES = 2048
 _ERR_VALUE, _ERR_MEMORY = 1, 3
 REBUILD_HINT = "run ./scripts/setup or python -m mipslam.render.cpu.build"
@@ -50,7 +50,8 @@ _SIGNATURES = {
     "mipslam_project_backward": ([_i64] + [_p] * 5 + [_i64, _i64] + [_p] * 3 + [_i64, _i64, _p, _i64] + [_p] * 5
                                  + [_i64] * 3 + [_p] * 6 + [_i64], ctypes.c_int),
     "mipslam_vector_math": ([_p, _p, _i64, _i64], None),
-    "mipslam_direct_align": ([_i64] + [_p] * 7 + [_i64, _f64, _f64, _p, _i64, _p, _p, _p, _i64], ctypes.c_int),
+    "mipslam_direct_align": ([_i64] + [_p] * 7 + [_i64, _f64, _f64, _p, _i64, ctypes.c_int, _p, _p, _p, _i64],
+                             ctypes.c_int),
 }
 
 
@@ -185,9 +186,10 @@ class Library:
     # --- direct RGB-D alignment (direct_align.h) -----------------------------------------------------
     def direct_align(self, levels: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[float, ...]]],
                      T_init: torch.Tensor, iterations: int, alpha_color: float, convergence: float,
-                     constants: tuple[float, ...]) -> tuple[torch.Tensor, int, int, bool]:
+                     constants: tuple[float, ...], threads: int = 1) -> tuple[torch.Tensor, int, int, bool]:
         """Gauss-Newton alignment over pyramid ``levels``, coarse to fine, each (points [n, 3], intensity [n],
-        channels [7, h, w], (fx, fy, cx, cy)), float32. -> (T [4, 4] float64, steps, residuals used, ran)."""
+        channels [7, h, w], (fx, fy, cx, cy)), float32, on ``threads`` threads (the result does not depend on
+        them). -> (T [4, 4] float64, steps, residuals used, ran)."""
         count = len(levels)
         tensors = []
         for points, intensity, channels, _ in levels:
@@ -207,7 +209,7 @@ class Library:
                    _c_array(ctypes.c_void_p, map(_ptr, channels)), _c_array(ctypes.c_int64, (c.shape[1] for c in channels)),
                    _c_array(ctypes.c_int64, (c.shape[2] for c in channels)), intrinsics, int(iterations),
                    float(alpha_color), float(convergence), _c_array(ctypes.c_double, constants), len(constants),
-                   _ptr(T), _ptr(stats))
+                   int(threads), _ptr(T), _ptr(stats))
         return T, int(stats[0]), int(stats[1]), bool(stats[2])
 
     # --- tile rasterizer ------------------------------------------------------------------------------

@@ -827,7 +827,7 @@ int guarded(char* err, int64_t err_len, F&& body) {
 #endif
 
 // Bumped whenever a signature below changes (library.py refuses a library of another version).
-MIPSLAM_API int mipslam_abi_version(void) { return 2; }
+MIPSLAM_API int mipslam_abi_version(void) { return 3; }
 
 // Hash of the sources and flags the library was built from (mipslam/render/cpu/build.py, source_hash), also
 // readable from the file without loading it (the marker).
@@ -1027,12 +1027,14 @@ MIPSLAM_API void mipslam_vector_math(const float* x, float* y, int64_t n, int64_
 // points[l] [counts[l], 3] and intensity[l] [counts[l]] of the reference, channels[l] [7, heights[l],
 // widths[l]] of the target, intrinsics[4 l .. 4 l + 3] = fx, fy, cx, cy. T [16] (row-major, float64) is the
 // initial motion on entry and the result on return; stats[3] = Gauss-Newton steps, residuals used at the last
-// step, 1 if any step ran. constants[NUM_CONSTANTS]: direct_align.h's Constant order.
+// step, 1 if any step ran. constants[NUM_CONSTANTS]: direct_align.h's Constant order. The result does not depend on
+// ``threads``.
 MIPSLAM_API int mipslam_direct_align(int64_t levels, const float* const* points, const float* const* intensity,
                                      const int64_t* counts, const float* const* channels, const int64_t* heights,
                                      const int64_t* widths, const float* intrinsics, int64_t iterations,
                                      double alpha_color, double convergence, const double* constants,
-                                     int64_t n_constants, double* T, int64_t* stats, char* err, int64_t err_len) {
+                                     int64_t n_constants, int threads, double* T, int64_t* stats, char* err,
+                                     int64_t err_len) {
     using namespace mipslam_cpu;
     return guarded(err, err_len, [&] {
         MIPSLAM_CHECK(n_constants == direct::NUM_CONSTANTS, "mipslam_direct_align: ", n_constants,
@@ -1047,7 +1049,7 @@ MIPSLAM_API int mipslam_direct_align(int64_t levels, const float* const* points,
                                             intrinsics[4 * l + 3]});
         }
         const direct::Outcome outcome =
-            direct::align(pyramid, T, iterations, alpha_color, convergence, constants);
+            direct::align(pyramid, T, iterations, alpha_color, convergence, constants, std::max(1, threads));
         stats[0] = outcome.steps;
         stats[1] = outcome.points;
         stats[2] = outcome.ran ? 1 : 0;
