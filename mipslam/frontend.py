@@ -165,27 +165,40 @@ def match_features(query: np.ndarray, train: np.ndarray, ratio: float, max_hammi
 
 
 def hamming_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamming distance of each row pair.  a, b [P, 32] uint8 -> [P] int64"""
-    xor = np.bitwise_xor(np.ascontiguousarray(a).view(np.uint64), np.ascontiguousarray(b).view(np.uint64))
-    if hasattr(np, "bitwise_count"):  # numpy >= 2.0
-        counts = np.bitwise_count(xor).astype(np.int64)  # [P, 4]
-        return counts[:, 0] + counts[:, 1] + counts[:, 2] + counts[:, 3]
-    return np.unpackbits(xor.view(np.uint8), axis=1).sum(axis=1, dtype=np.int64)
+    """Hamming distance of each row pair.  a, b [P, 32] uint8 (or their [P, 4] uint64 views) -> [P] int64"""
+    xor = np.bitwise_xor(_as_words(a), _as_words(b))  # [P, 4] uint64
+    if not hasattr(np, "bitwise_count"):  # numpy < 2.0
+        return np.unpackbits(xor.view(np.uint8), axis=1).sum(axis=1, dtype=np.int64)
+    counts = np.bitwise_count(xor).view(np.uint32).ravel()  # [P]: four bytes, each word's count (<= 64)
+    pairs = (counts & 0x00FF00FF) + ((counts >> 8) & 0x00FF00FF)  # two 16-bit sums of two bytes each
+    return ((pairs & 0xFFFF) + (pairs >> 16)).astype(np.int64)
 
 
-def _nearest_per_row(rows: np.ndarray, columns: np.ndarray, distances: np.ndarray, n_rows: int, n_columns: int):
+def _as_words(descriptors: np.ndarray) -> np.ndarray:
+    """[P, 32] uint8 ORB descriptors as [P, 4] uint64 (a view where they are contiguous)."""
+    if descriptors.dtype == np.uint64:
+        return descriptors
+    return np.ascontiguousarray(descriptors).view(np.uint64)
+
+
+def _nearest_per_row(rows: np.ndarray, columns: np.ndarray, distances: np.ndarray, n_rows: int, n_columns: int,
+                     with_second: bool = True):
     """For each row: its nearest column (-1 where it has no candidate) and distance, and the second-nearest
-    distance (inf where it has fewer than two candidates). Ties go to the lower column, as OpenCV's brute-force
-    matcher breaks them. rows, columns, distances [P] (each (row, column) at most once) -> 3 x [n_rows]"""
+    distance (inf where it has fewer than two candidates; None unless ``with_second``). Ties go to the lower
+    column, as OpenCV's brute-force matcher breaks them. rows, columns, distances [P] (each (row, column) at most
+    once) -> 3 x [n_rows]"""
+    none = np.iinfo(np.int64).max
     key = distances * n_columns + columns  # orders by distance, then column
-    best = np.full(n_rows, np.iinfo(np.int64).max, dtype=np.int64)
+    best = np.full(n_rows, none, dtype=np.int64)
     np.minimum.at(best, rows, key)
-    others = key != best[rows]
-    second = np.full(n_rows, np.inf)
-    np.minimum.at(second, rows[others], distances[others].astype(np.float64))
-    found = best != np.iinfo(np.int64).max
-    return (np.where(found, best % n_columns, -1), np.where(found, best // n_columns, np.inf).astype(np.float64),
-            second)
+    found = best != none
+    nearest = np.where(found, best % n_columns, -1)
+    if not with_second:
+        return nearest, np.where(found, best // n_columns, np.inf).astype(np.float64), None
+    second = np.full(n_rows, none, dtype=np.int64)
+    np.minimum.at(second, rows, np.where(key != best[rows], distances, none))
+    return (nearest, np.where(found, best // n_columns, np.inf).astype(np.float64),
+            np.where(second != none, second, np.inf).astype(np.float64))
 
 
 def _match_candidates(query: np.ndarray, train: np.ndarray, candidates: np.ndarray, ratio: float,
@@ -195,9 +208,9 @@ def _match_candidates(query: np.ndarray, train: np.ndarray, candidates: np.ndarr
     if len(candidates) == 0:
         return np.zeros((0, 2), np.int64)
     q, t = candidates[:, 0], candidates[:, 1]
-    distances = hamming_distances(np.take(query, q, axis=0), np.take(train, t, axis=0))
+    distances = hamming_distances(np.take(_as_words(query), q, axis=0), np.take(_as_words(train), t, axis=0))
     nearest_train, best, second = _nearest_per_row(q, t, distances, len(query), len(train))
-    nearest_query, _, _ = _nearest_per_row(t, q, distances, len(train), len(query))
+    nearest_query, _, _ = _nearest_per_row(t, q, distances, len(train), len(query), with_second=False)
     rows = np.flatnonzero(nearest_train >= 0)
     columns = nearest_train[rows]
     keep = (best[rows] <= max_hamming) & ~(best[rows] >= ratio * second[rows]) & (nearest_query[columns] == rows)
