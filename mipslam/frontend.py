@@ -150,8 +150,16 @@ def match_features(query: np.ndarray, train: np.ndarray, ratio: float, max_hammi
     if candidates is not None:
         return _match_candidates(query, train, candidates, ratio, max_hamming)
     matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
-    forward = matcher.knnMatch(query, train, k=2)
-    backward = {m.queryIdx: m.trainIdx for m in matcher.match(train, query)}
+    return mutual_ratio_pairs(matcher.knnMatch(query, train, k=2), matcher.match(train, query), ratio, max_hamming)
+
+
+def mutual_ratio_pairs(forward, backward, ratio: float, max_hamming: int) -> np.ndarray:
+    """The pairs of OpenCV brute-force matches that pass the ratio test and are mutual.
+
+    forward: ``knnMatch(query, train, k=2)``'s lists; backward: ``match(train, query)``'s matches.
+    -> [K, 2] int64 pairs (query row, train row), by query row.
+    """
+    nearest_query = {m.queryIdx: m.trainIdx for m in backward}
     pairs = []
     for nearest in forward:
         if not nearest:
@@ -159,7 +167,7 @@ def match_features(query: np.ndarray, train: np.ndarray, ratio: float, max_hammi
         best = nearest[0]
         if best.distance > max_hamming or (len(nearest) > 1 and best.distance >= ratio * nearest[1].distance):
             continue
-        if backward.get(best.trainIdx) == best.queryIdx:
+        if nearest_query.get(best.trainIdx) == best.queryIdx:
             pairs.append((best.queryIdx, best.trainIdx))
     return np.array(pairs, dtype=np.int64).reshape(-1, 2)
 

@@ -18,7 +18,8 @@ from mipslam.io.tum import read_tum_trajectory
 from mipslam.mapping import Mapper, MappingView
 from mipslam.pipeline import run_slam
 from mipslam.tracking import Tracker
-from mipslam.frontend import FeatureOptions, Frontend, estimate_relative_pose, extract_features, match_features
+from mipslam.frontend import (FeatureOptions, Frontend, estimate_relative_pose, extract_features, match_features,
+                              mutual_ratio_pairs)
 from mipslam.geometry.se3 import rotation_angle, se3_exp
 from mipslam.types import Frame, Intrinsics
 
@@ -177,17 +178,8 @@ def _masked_brute_force(query, train, ratio, max_hamming, allowed):
     former implementation): the reference of the candidate-pair matcher."""
     matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
     forward = matcher.knnMatch(query, train, k=2, mask=allowed.astype(np.uint8))
-    backward = {m.queryIdx: m.trainIdx for m in matcher.match(train, query, mask=allowed.T.astype(np.uint8).copy())}
-    pairs = []
-    for nearest in forward:
-        if not nearest:
-            continue
-        best = nearest[0]
-        if best.distance > max_hamming or (len(nearest) > 1 and best.distance >= ratio * nearest[1].distance):
-            continue
-        if backward.get(best.trainIdx) == best.queryIdx:
-            pairs.append((best.queryIdx, best.trainIdx))
-    return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+    backward = matcher.match(train, query, mask=allowed.T.astype(np.uint8).copy())
+    return mutual_ratio_pairs(forward, backward, ratio, max_hamming)
 
 
 def test_matching_among_candidate_pairs_equals_opencvs_masked_brute_force():

@@ -192,6 +192,22 @@ def _rejected(T_ij, fitness, rmse, n, corr_m, corr_deg, reason, start) -> Regist
                               False, reason, time.perf_counter() - start)
 
 
+def _keyframe_clouds(color_i, depth_i, color_j, depth_j, intrinsics: Intrinsics, options: RegistrationOptions):
+    """The Open3D clouds of keyframes i (target) and j (source) in their camera frames, as the checks read them."""
+    kw = dict(pixel_stride=options.pixel_stride, min_depth_m=options.min_depth_m, max_depth_m=options.max_depth_m)
+    return rgbd_point_cloud(color_i, depth_i, intrinsics, **kw), rgbd_point_cloud(color_j, depth_j, intrinsics, **kw)
+
+
+def _too_few_points(source, target, T_ij_init: torch.Tensor, options: RegistrationOptions,
+                    start: float) -> RegistrationResult | None:
+    """The rejection of a pair whose clouds hold under ``options.min_points`` points, else None."""
+    n = min(len(source.points), len(target.points))
+    if n >= options.min_points:
+        return None
+    return _rejected(T_ij_init.to(torch.float64).cpu(), 0.0, math.inf, 0, 0.0, 0.0,
+                     f"too few valid depth points ({n} < {options.min_points})", start)
+
+
 def register_point_clouds(source, target, T_ij_init: torch.Tensor, options: RegistrationOptions = RegistrationOptions()) -> RegistrationResult:
     """Register Open3D clouds: source = keyframe j, target = keyframe i, both in their camera frames.
 
@@ -204,10 +220,9 @@ def register_point_clouds(source, target, T_ij_init: torch.Tensor, options: Regi
     reg = o3d.pipelines.registration
     start = time.perf_counter()
     init = T_ij_init.detach().to(torch.float64).cpu().numpy()
-    if min(len(source.points), len(target.points)) < options.min_points:
-        n = min(len(source.points), len(target.points))
-        return _rejected(T_ij_init.to(torch.float64).cpu(), 0.0, math.inf, 0, 0.0, 0.0,
-                         f"too few valid depth points ({n} < {options.min_points})", start)
+    rejected = _too_few_points(source, target, T_ij_init, options, start)
+    if rejected is not None:
+        return rejected
     current = init.copy()
     result = None
     src_down = tgt_down = None
@@ -295,13 +310,10 @@ def register_rgbd_odometry(
     """
     o3d = load_open3d()
     start = time.perf_counter()
-    kw = dict(pixel_stride=options.pixel_stride, min_depth_m=options.min_depth_m, max_depth_m=options.max_depth_m)
-    target = rgbd_point_cloud(color_i, depth_i, intrinsics, **kw)
-    source = rgbd_point_cloud(color_j, depth_j, intrinsics, **kw)
-    if min(len(source.points), len(target.points)) < options.min_points:
-        n = min(len(source.points), len(target.points))
-        return _rejected(T_ij_init.to(torch.float64).cpu(), 0.0, math.inf, 0, 0.0, 0.0,
-                         f"too few valid depth points ({n} < {options.min_points})", start)
+    target, source = _keyframe_clouds(color_i, depth_i, color_j, depth_j, intrinsics, options)
+    rejected = _too_few_points(source, target, T_ij_init, options, start)
+    if rejected is not None:
+        return rejected
     camera = o3d.camera.PinholeCameraIntrinsic(intrinsics.width, intrinsics.height, intrinsics.fx, intrinsics.fy,
                                                intrinsics.cx, intrinsics.cy)
     odometry = o3d.pipelines.odometry
@@ -367,13 +379,10 @@ def register_rgbd_direct(
     from mipslam.render import direct_aligner  # the renderer's package owns the compiled library
 
     start = time.perf_counter()
-    kw = dict(pixel_stride=options.pixel_stride, min_depth_m=options.min_depth_m, max_depth_m=options.max_depth_m)
-    target = rgbd_point_cloud(color_i, depth_i, intrinsics, **kw)
-    source = rgbd_point_cloud(color_j, depth_j, intrinsics, **kw)
-    if min(len(source.points), len(target.points)) < options.min_points:
-        n = min(len(source.points), len(target.points))
-        return _rejected(T_ij_init.to(torch.float64).cpu(), 0.0, math.inf, 0, 0.0, 0.0,
-                         f"too few valid depth points ({n} < {options.min_points})", start)
+    target, source = _keyframe_clouds(color_i, depth_i, color_j, depth_j, intrinsics, options)
+    rejected = _too_few_points(source, target, T_ij_init, options, start)
+    if rejected is not None:
+        return rejected
     references, targets = _direct_pyramids(color_i, depth_i, color_j, depth_j, intrinsics, options)
     align = direct_aligner("auto", torch.device("cpu"))
     aligned = align(references, targets, T_ij_init.detach().to(torch.float64).cpu(),
@@ -406,9 +415,7 @@ def register_rgbd_pair(
     elif options.method == "direct":
         result = register_rgbd_direct(color_i, depth_i, color_j, depth_j, intrinsics, T_ij_init, options)
     else:
-        kw = dict(pixel_stride=options.pixel_stride, min_depth_m=options.min_depth_m, max_depth_m=options.max_depth_m)
-        target = rgbd_point_cloud(color_i, depth_i, intrinsics, **kw)
-        source = rgbd_point_cloud(color_j, depth_j, intrinsics, **kw)
+        target, source = _keyframe_clouds(color_i, depth_i, color_j, depth_j, intrinsics, options)
         result = register_point_clouds(source, target, T_ij_init, options)
     logger.debug("loop verification: fitness %.3f, rmse %.4f m, accepted=%s %s", result.fitness,
                  result.inlier_rmse_m, result.accepted, result.reason)
