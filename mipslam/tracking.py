@@ -332,10 +332,10 @@ class Tracker:
             best = (xi_seen, None if exposure is None else torch.zeros_like(exposure.detach()))
         levels = self._levels(frame)
         full = levels[-1]  # the finest level (tracking.resolution_scale) is last and gets at least half the iterations
+        base_lrs = [group["lr"] for group in optimizer.param_groups]
         # Adam's rate decays geometrically within each level: lr_i = lr * ratio^(i / (n - 1)). Rprop reads lr
         # only to size its first steps and adapts them itself, so its rate is left alone.
         decays_lr = cfg.optimizer == "adam"
-        base_lrs = [group["lr"] for group in optimizer.param_groups] if decays_lr else []
         for level in levels:
             decay = cfg.lr_final_ratio ** (1.0 / max(1, level.iterations - 1))
             for i in range(level.iterations):
@@ -430,55 +430,24 @@ class Tracker:
                               valid_fraction, False, status)
 
 
-class PoseRprop:
-    """Rprop (Riedmiller & Braun 1993) for tracking's few small pose tensors: the same operations in the same
-    order as ``torch.optim.Rprop``'s single-tensor step (bit-identical results, tests/test_tracking.py) without
-    the optimizer machinery, which costs more than the arithmetic here (about 0.5 ms a step against 0.1).
-
-    groups: ``[{"params": [tensor], "lr": first step}]``; each step size stays in [0, lr * max_step_ratio].
-    """
-
-    def __init__(self, groups: list[dict], max_step_ratio: float, etas: tuple[float, float] = (0.5, 1.2)):
-        self.etaminus, self.etaplus = etas
-        self.params = [p for group in groups for p in group["params"]]
-        self.max_steps = [group["lr"] * max_step_ratio for group in groups for _ in group["params"]]
-        self.state = {p: {"prev": torch.zeros_like(p), "step_size": torch.full_like(p, group["lr"])}
-                      for group in groups for p in group["params"]}
-
-    def zero_grad(self, set_to_none: bool = True) -> None:
-        for p in self.params:
-            p.grad = None
-
-    @torch.no_grad()
-    def step(self) -> None:
-        for p, max_step in zip(self.params, self.max_steps):
-            if p.grad is None:
-                continue
-            prev, step_size = self.state[p]["prev"], self.state[p]["step_size"]
-            sign = p.grad.mul(prev).sign()
-            factor = torch.where(sign < 0, self.etaminus, torch.where(sign > 0, self.etaplus, torch.ones_like(sign)))
-            step_size.mul_(factor).clamp_(0.0, max_step)
-            grad = torch.where(sign < 0, 0.0, p.grad)  # no move where the sign flipped
-            p.addcmul_(grad.sign(), step_size, value=-1)
-            prev.copy_(grad)
-
-
-def _pose_optimizer(cfg: TrackingConfig, groups: list[dict]) -> torch.optim.Optimizer | PoseRprop:
-    """Adam, or Rprop (:class:`PoseRprop`) started at the configured rates and capped at
+def _pose_optimizer(cfg: TrackingConfig, groups: list[dict]) -> torch.optim.Optimizer:
+    """Adam, or Rprop (Riedmiller & Braun 1993) started at the configured rates and capped at
     ``rprop_max_step_ratio`` times them; the etas are Rprop's published 0.5 / 1.2."""
     if cfg.optimizer == "adam":
         return torch.optim.Adam(groups)
-    return PoseRprop(groups, cfg.rprop_max_step_ratio)
+    for group in groups:
+        group["step_sizes"] = (0.0, group["lr"] * cfg.rprop_max_step_ratio)
+    return torch.optim.Rprop(groups, etas=(0.5, 1.2))
 
 
-def _converged(optimizer: torch.optim.Optimizer | PoseRprop, pose_params: list[torch.Tensor], update_norm: float,
+def _converged(optimizer: torch.optim.Optimizer, pose_params: list[torch.Tensor], update_norm: float,
                threshold: float) -> bool:
     """Whether the pose has settled: its last update (se3 norm), or for Rprop the size of its next one.
 
     Rprop leaves a coordinate in place on the step its gradient changes sign, so a zero update there
     says nothing; the per-coordinate step sizes bound every later move and shrink as it converges.
     """
-    if not isinstance(optimizer, PoseRprop):
+    if not isinstance(optimizer, torch.optim.Rprop):
         return update_norm < threshold
     sizes = [optimizer.state[p]["step_size"].flatten() for p in pose_params]  # [3] each
     return float(torch.cat(sizes).norm()) < threshold
