@@ -201,12 +201,12 @@ def _nearest_per_row(rows: np.ndarray, columns: np.ndarray, distances: np.ndarra
     np.minimum.at(best, rows, key)
     found = best != none
     nearest = np.where(found, best % n_columns, -1)
+    nearest_distance = np.where(found, best // n_columns, np.inf).astype(np.float64)
     if not with_second:
-        return nearest, np.where(found, best // n_columns, np.inf).astype(np.float64), None
+        return nearest, nearest_distance, None
     second = np.full(n_rows, none, dtype=np.int64)
     np.minimum.at(second, rows, np.where(key != best[rows], distances, none))
-    return (nearest, np.where(found, best // n_columns, np.inf).astype(np.float64),
-            np.where(second != none, second, np.inf).astype(np.float64))
+    return nearest, nearest_distance, np.where(second != none, second, np.inf).astype(np.float64)
 
 
 def _match_candidates(query: np.ndarray, train: np.ndarray, candidates: np.ndarray, ratio: float,
