@@ -18,8 +18,6 @@
 #include <cstdint>
 #include <vector>
 
-#include <omp.h>
-
 #include "check.h"
 
 namespace mipslam_cpu {
