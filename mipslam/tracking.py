@@ -34,7 +34,7 @@ from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry import nearest_rigid, resize_area
 from mipslam.frontend import Frontend, FrontendStart
 from mipslam.geometry.direct import DirectReference, DirectTarget, direct_reference, direct_target, pyramid_scales
-from mipslam.geometry.se3 import se3_exp, se3_inverse, se3_log
+from mipslam.geometry.se3 import se3_exp, se3_exp_times, se3_inverse, se3_log
 from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, image_gradient_mask, rgbd_l1_loss, rgbd_masks
 from mipslam.loop.registration import RegistrationOptions, register_rgbd_odometry
 from mipslam.render import RenderOutput, direct_aligner
@@ -342,8 +342,7 @@ class Tracker:
                 if decays_lr:
                     for group, base in zip(optimizer.param_groups, base_lrs):
                         group["lr"] = base * decay ** i
-                xi = torch.cat([rho, phi])
-                T_cw = (se3_exp(xi.to(torch.float64)) @ T_cw_init).to(dtype)
+                T_cw = se3_exp_times(rho, phi, T_cw_init, dtype)  # (se3_exp([rho, phi]) @ T_cw_init).to(dtype)
                 loss, alpha = self._loss(gaussians, T_cw, level, exposure)
                 if not torch.isfinite(loss.total):
                     return self._failed(T_wc_init, iterations, "non_finite_loss", math.nan, 0.0)
@@ -353,13 +352,13 @@ class Tracker:
                     best_loss, best_depth_pixels = float(loss.total.detach()), loss.num_depth_pixels
                     best_step = full_steps
                     best_covered = self._covered_pixels(alpha, level)
-                    best = (xi.detach().clone(), None if exposure is None else exposure.detach().clone())
+                    best = (torch.cat([rho.detach(), phi.detach()]), None if exposure is None else exposure.detach().clone())
                 if level is full and i == level.iterations - 1:
                     iterations += 1
                     break  # no render would judge a further step: its backward is skipped
                 optimizer.zero_grad(set_to_none=True)
                 loss.total.backward()
-                before = xi.detach()
+                before = torch.cat([rho.detach(), phi.detach()])
                 optimizer.step()
                 iterations += 1
                 step = float((torch.cat([rho, phi]).detach() - before).norm())

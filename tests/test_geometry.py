@@ -20,6 +20,7 @@ from mipslam.geometry import (
     rotmat_to_quat_wxyz,
     se3_compose,
     se3_exp,
+    se3_exp_times,
     se3_inverse,
     se3_log,
     so3_exp,
@@ -244,6 +245,50 @@ def test_gradients_are_finite_at_exact_zero():
     # d log(exp(xi)) / d xi = I at zero
     jac = torch.autograd.functional.jacobian(lambda x: se3_log(se3_exp(x)), torch.zeros(6, dtype=F64))
     assert torch.allclose(jac, torch.eye(6, dtype=F64), atol=1e-12)
+
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-6, 5e-3, 0.0099, 0.0101, 0.3, 2.5])
+def test_se3_exp_times_matches_se3_exp_values_and_gradients(angle):
+    """The closed-form backward of tracking's pose step against autograd through se3_exp: float32 bit for bit
+    (what tracking renders and steps on), float64 to rounding, on both sides of the series switch (theta^2 =
+    1e-4, theta = 0.01)."""
+    generator = torch.Generator().manual_seed(int(angle * 1e4) + 21)
+    T = se3_exp(torch.randn(6, generator=generator, dtype=F64))
+    for dtype in (torch.float32, F64):
+        axis = torch.randn(3, generator=generator, dtype=F64)
+        phi0 = (axis / axis.norm() * angle).to(dtype)
+        rho0 = (0.05 * torch.randn(3, generator=generator, dtype=F64)).to(dtype)
+        upstream = torch.randn(4, 4, generator=generator, dtype=F64).to(dtype)
+        grads = []
+        for closed_form in (False, True):
+            rho, phi = rho0.clone().requires_grad_(True), phi0.clone().requires_grad_(True)
+            if closed_form:
+                out = se3_exp_times(rho, phi, T, dtype)
+            else:
+                out = (se3_exp(torch.cat([rho, phi]).to(F64)) @ T).to(dtype)
+            (out * upstream).sum().backward()
+            assert out.dtype == dtype and rho.grad.dtype == dtype and phi.grad.dtype == dtype
+            grads.append((out.detach(), rho.grad, phi.grad))
+        (out_ref, rho_ref, phi_ref), (out_new, rho_new, phi_new) = grads
+        if dtype == torch.float32:
+            assert torch.equal(out_ref, out_new)
+            assert torch.allclose(rho_ref, rho_new, rtol=1e-6, atol=1e-7)
+            assert torch.allclose(phi_ref, phi_new, rtol=1e-6, atol=1e-7)
+        else:
+            assert torch.allclose(out_ref, out_new, rtol=0, atol=1e-14)
+            assert torch.allclose(rho_ref, rho_new, rtol=1e-12, atol=1e-13)
+            assert torch.allclose(phi_ref, phi_new, rtol=1e-12, atol=1e-13)
+
+
+def test_se3_exp_times_gradcheck_and_shape_errors():
+    T = se3_exp(random_twists(1, seed=22))[0]
+    for scale in (1.0, 1e-3, 0.0):
+        twist = random_twists(1, seed=23)[0] * scale
+        rho, phi = (twist[:3].clone().requires_grad_(True), twist[3:].clone().requires_grad_(True))
+        assert gradcheck(lambda r, p: se3_exp_times(r, p, T, F64), (rho, phi), eps=1e-6, atol=1e-6, rtol=1e-5)
+    with pytest.raises(ValueError, match="rho \\[3\\], phi \\[3\\] and T \\[4, 4\\]"):
+        se3_exp_times(torch.zeros(6), torch.zeros(3), T, F64)
 
 
 # ----------------------------------------------------------------------------- camera
