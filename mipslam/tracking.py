@@ -35,7 +35,8 @@ from mipslam.geometry import nearest_rigid, resize_area
 from mipslam.frontend import Frontend, FrontendStart
 from mipslam.geometry.direct import DirectReference, DirectTarget, direct_reference, direct_target, pyramid_scales
 from mipslam.geometry.se3 import se3_exp, se3_exp_times, se3_inverse, se3_log
-from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, image_gradient_mask, rgbd_l1_loss, rgbd_masks
+from mipslam.losses.photometric import (RGBDLoss, RGBDMasks, apply_affine_exposure, image_gradient_mask, rgbd_l1_loss,
+                                        rgbd_masks)
 from mipslam.loop.registration import RegistrationOptions, register_rgbd_odometry
 from mipslam.render import RenderOutput, direct_aligner
 from mipslam.rendering import frustum_subset, render_view
@@ -112,12 +113,13 @@ class _Seen:
 @dataclass(frozen=True)
 class _StartView:
     """One of best_start's renders: the map it rendered, the pose [4, 4] (the map's dtype, world-to-camera), the
-    map's frustum subset there and the render (tracking from that start reuses both)."""
+    map's frustum subset there, the render and its tracking loss (tracking from that start reuses all three)."""
 
     gaussians: ActivatedGaussians
     T_cw: torch.Tensor
     subset: ActivatedGaussians
     render: RenderOutput
+    loss: RGBDLoss
 
 
 @dataclass
@@ -239,11 +241,12 @@ class Tracker:
         steps = 0
         for round_index in range(cfg.direct_renders):
             start = self._frame_work(frame).start_view(start_map, T_cw.to(dtype)) if round_index == 0 else None
-            out = start.render if start is not None else None
-            if out is None:
+            if start is not None:
+                out, loss = start.render, start.loss
+            else:
                 out = render_view(gaussians, T_cw.to(dtype), full.intrinsics, self.render_config,
                                   mode=full.render_mode, pose_only=True)
-            loss = self._loss_of_render(out, full, None)
+                loss = self._loss_of_render(out, full, None)
             value = float(loss.total)
             if not math.isfinite(value) or (best is not None and value >= best.loss):
                 return (T_cw if best is None else best.T_cw), best, steps
@@ -411,9 +414,9 @@ class Tracker:
             subset = frustum_subset(gaussians, T_cw, frame.intrinsics, self.render_config)
             out = render_view(subset, T_cw, level.intrinsics, self.render_config, mode=level.render_mode,
                               pose_only=True)
-            # tracking from this start takes the same subset, and the direct alignment's first render is this one
-            work.starts.append(_StartView(gaussians, T_cw, subset, out))
             loss = self._loss_of_render(out, level, None)
+            # tracking from this start takes the same subset, and the direct alignment's first render is this one
+            work.starts.append(_StartView(gaussians, T_cw, subset, out, loss))
             valid = loss.num_depth_pixels / max(1, level.depth.numel())
             value = float(loss.total)
             losses.append(value if math.isfinite(value) and valid >= self.config.min_valid_fraction else math.inf)
@@ -480,7 +483,8 @@ def track_frame(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "Fra
     start = frontend_start(frontend, state, frame, frames, prediction)
     if len(state.gaussian_map) == 0:
         return initial_result(start.T_wc)
-    detached = state.gaussian_map.activated().detached()
+    with torch.no_grad():  # a frozen map: no autograd graph over every Gaussian's activations
+        detached = state.gaussian_map.activated().detached()
     candidates = [prediction]  # the render loss judges between the motion model's pose and the other one
     asks_dense = start.source != "features" and tracker.config.dense_start
     if start.source == "features":

@@ -174,6 +174,33 @@ def test_resize_area_does_not_alias_a_checkerboard():
     assert torch.equal(sampled, torch.zeros(16, 16, dtype=torch.float64))  # point sampling aliases to black
 
 
+@pytest.mark.parametrize("shape", [(240, 320, 3), (120, 160), (2, 2, 1)])
+def test_resize_area_halving_is_the_weighted_sum_bit_for_bit(shape):
+    """Factor 0.5 takes a 2x2-block path; it must give the bits of the general weighted sums (rows, then
+    columns), so tracking's pyramids are unchanged by it, with a valid mask too."""
+    from mipslam.geometry.resample import _area_weights
+
+    generator = torch.Generator().manual_seed(17)
+    image = torch.rand(*shape, generator=generator) * 3 - 1
+    valid = torch.rand(shape[:2], generator=generator) > 0.3
+    rows = _area_weights(shape[0], shape[0] // 2, 0.5, image.dtype, image.device)  # [h, H]
+    cols = _area_weights(shape[1], shape[1] // 2, 0.5, image.dtype, image.device)  # [w, W]
+
+    def weighted(z):  # [H, W, C] -> [h, w, C]: rows @ z, then the columns
+        y = (rows @ z.reshape(shape[0], -1)).reshape(shape[0] // 2, shape[1], -1)
+        return (y.permute(0, 2, 1) @ cols.T).permute(0, 2, 1)
+
+    hwc = image if image.dim() == 3 else image[..., None]
+    expected = weighted(hwc)
+    weight = valid.to(image.dtype)[..., None]
+    coverage = weighted(weight)
+    expected_valid = torch.where(coverage > 0, weighted(torch.where(weight > 0, hwc, 0.0)) / coverage, 0.0)
+    if image.dim() == 2:
+        expected, expected_valid = expected[..., 0], expected_valid[..., 0]
+    assert torch.equal(resize_area(image, 0.5), expected)
+    assert torch.equal(resize_area(image, 0.5, valid=valid), expected_valid)
+
+
 def test_resize_area_valid_mask_keeps_holes_out_of_the_mean():
     depth = torch.tensor([[2.0, 0.0], [4.0, 0.0]])
     valid = depth > 0

