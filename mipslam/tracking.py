@@ -345,6 +345,7 @@ class Tracker:
                 if decays_lr:
                     for group, base in zip(optimizer.param_groups, base_lrs):
                         group["lr"] = base * decay ** i
+                xi = torch.cat([rho.detach(), phi.detach()])  # this step's twist, before the optimiser moves it
                 T_cw = se3_exp_times(rho, phi, T_cw_init, dtype)  # (se3_exp([rho, phi]) @ T_cw_init).to(dtype)
                 loss, alpha = self._loss(gaussians, T_cw, level, exposure)
                 if not torch.isfinite(loss.total):
@@ -355,16 +356,15 @@ class Tracker:
                     best_loss, best_depth_pixels = float(loss.total.detach()), loss.num_depth_pixels
                     best_step = full_steps
                     best_covered = self._covered_pixels(alpha, level)
-                    best = (torch.cat([rho.detach(), phi.detach()]), None if exposure is None else exposure.detach().clone())
+                    best = (xi, None if exposure is None else exposure.detach().clone())
                 if level is full and i == level.iterations - 1:
                     iterations += 1
                     break  # no render would judge a further step: its backward is skipped
                 optimizer.zero_grad(set_to_none=True)
                 loss.total.backward()
-                before = torch.cat([rho.detach(), phi.detach()])
                 optimizer.step()
                 iterations += 1
-                step = float((torch.cat([rho, phi]).detach() - before).norm())
+                step = float((torch.cat([rho.detach(), phi.detach()]) - xi).norm())
                 if _converged(optimizer, [rho, phi], step, cfg.convergence_threshold):
                     break
 

@@ -247,7 +247,6 @@ def test_gradients_are_finite_at_exact_zero():
     assert torch.allclose(jac, torch.eye(6, dtype=F64), atol=1e-12)
 
 
-
 @pytest.mark.parametrize("angle", [0.0, 1e-6, 5e-3, 0.0099, 0.0101, 0.3, 2.5])
 def test_se3_exp_times_matches_se3_exp_values_and_gradients(angle):
     """The closed-form backward of tracking's pose step against autograd through se3_exp: float32 bit for bit
