@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import json
+import os
+import sys
 from pathlib import Path
 
 import cv2
@@ -575,6 +577,72 @@ def test_kept_frames_are_not_read_again_within_the_byte_budget(tmp_path):
     reads.clear()
     unbounded[1], unbounded[0]
     assert reads == [1, 0]  # no budget: nothing is kept
+
+
+def test_frame_cache_reads_a_frame_itself_when_the_read_ahead_thread_is_late(tmp_path):
+    import threading
+
+    from mipslam.datasets import FrameCache
+
+    write_replica(tmp_path / "rep")
+    sequence = make_sequence(DatasetConfig(kind="replica", path=str(tmp_path / "rep")))
+    release, reads = threading.Event(), []
+
+    class Starved:  # the reader thread gets no CPU until released (other processes busy on every core)
+        random_access = True
+
+        def __len__(self):
+            return len(sequence)
+
+        def __getitem__(self, index):
+            in_reader = threading.current_thread().name.startswith("mipslam-read")
+            reads.append((index, in_reader))
+            if in_reader:
+                release.wait(timeout=30)
+            return sequence[index]
+
+    cache = FrameCache(Starved(), torch.device("cpu"), capacity=2, read_ahead=True)
+    try:
+        cache[0]
+        cache.prefetch(1)
+        cache.prefetch(2)  # queued behind frame 1's read: cancelled when frame 2 is read in the caller's thread
+        assert torch.equal(cache[1].color, sequence[1].color)
+        assert torch.equal(cache[2].depth, sequence[2].depth)
+        assert (1, False) in reads and (2, False) in reads and (2, True) not in reads
+    finally:
+        release.set()
+        cache.close()
+
+
+@pytest.mark.skipif(not (sys.platform.startswith("linux") and hasattr(os, "SCHED_IDLE")),
+                    reason="per-thread SCHED_IDLE is Linux's")
+def test_frame_cache_reads_ahead_at_idle_priority(tmp_path):
+    import threading
+
+    from mipslam.datasets import FrameCache
+
+    write_replica(tmp_path / "rep")
+    sequence = make_sequence(DatasetConfig(kind="replica", path=str(tmp_path / "rep")))
+    policies = {}
+
+    class Recording:
+        random_access = True
+
+        def __len__(self):
+            return len(sequence)
+
+        def __getitem__(self, index):
+            policies[threading.current_thread().name.startswith("mipslam-read")] = os.sched_getscheduler(0)
+            return sequence[index]
+
+    cache = FrameCache(Recording(), torch.device("cpu"), capacity=2, read_ahead=True)
+    try:
+        cache[0]
+        cache.prefetch(1)
+        cache._pending[1].result(timeout=30)
+    finally:
+        cache.close()
+    assert policies == {False: os.SCHED_OTHER, True: os.SCHED_IDLE}  # the caller's thread keeps its class
 
 
 def test_frame_cache_read_ahead_error_surfaces_when_the_frame_is_asked_for(tmp_path):

@@ -10,6 +10,10 @@ truth is camera-to-world, OpenCV axes, float64.
 """
 from __future__ import annotations
 
+import logging
+import os
+import sys
+import time
 from collections import OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
@@ -55,6 +59,24 @@ def make_sequence(cfg: DatasetConfig) -> RGBDSequence:
     raise DatasetError(root, f"unknown dataset kind {cfg.kind!r}; use replica, tum, synthetic, realsense or realsense_bag")
 
 
+log = logging.getLogger("mipslam.datasets")
+
+
+def _run_at_idle_priority() -> None:
+    """Put the calling thread in Linux's SCHED_IDLE class: it runs only on a core nothing else wants.
+
+    Decoding a frame is CPU work (two PNGs: ~20 ms at 640x480); at normal priority the reader takes it from
+    the frame loop's threads whenever they use every core, which slows tracking by as much as the read
+    costs. At idle priority it fills the gaps the loop leaves (single-threaded Python between the kernels).
+    Elsewhere (no per-thread scheduling class) the reader keeps its normal priority."""
+    if not (sys.platform.startswith("linux") and hasattr(os, "SCHED_IDLE")):
+        return
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))  # pid 0: this thread
+    except OSError as exc:  # a sandbox that forbids it: reading ahead still works, at normal priority
+        log.debug("read-ahead thread keeps its priority: %s", exc)
+
+
 def _frame_bytes(frame: Frame) -> int:
     return frame.color.numel() * frame.color.element_size() + frame.depth.numel() * frame.depth.element_size()
 
@@ -67,8 +89,11 @@ class FrameCache:
     :meth:`keep` (keyframes) stay beyond the last ``capacity``, up to ``kept_bytes`` of images.
 
     ``read_ahead``: :meth:`prefetch` reads a frame on one background thread while the caller works (decoding
-    and downscaling release the GIL), so the frame loop does not wait for the disk. A camera's sequence must
-    not read ahead (its reader delivers the newest frame when asked). Errors surface when the frame is asked for.
+    and downscaling release the GIL), so the frame loop does not wait for the disk. The thread runs at idle
+    priority (:func:`_run_at_idle_priority`); a frame it has not delivered within one read's time of being
+    asked for (the reader starved by other processes on every core) is read by the caller instead. A
+    camera's sequence must not read ahead (its reader delivers the newest frame when asked). Errors surface
+    when the frame is asked for.
     """
 
     def __init__(self, sequence: RGBDSequence, device: torch.device, capacity: int, *, read_ahead: bool = False,
@@ -80,12 +105,27 @@ class FrameCache:
         self.kept_bytes = max(0, kept_bytes)
         self._kept: OrderedDict[int, Frame] = OrderedDict()
         self._kept_size = 0
-        self._reader = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mipslam-read") if read_ahead else None
+        self._reader = (ThreadPoolExecutor(max_workers=1, thread_name_prefix="mipslam-read",
+                                           initializer=_run_at_idle_priority) if read_ahead else None)
         self._pending: dict[int, Future] = {}
+        self._read_seconds = 0.0  # how long the latest read took (either thread)
 
     def _read(self, index: int) -> Frame:
+        start = time.perf_counter()
         frame = self.sequence[index]
-        return replace(frame, color=frame.color.to(self.device), depth=frame.depth.to(self.device))
+        frame = replace(frame, color=frame.color.to(self.device), depth=frame.depth.to(self.device))
+        self._read_seconds = time.perf_counter() - start
+        return frame
+
+    def _collect(self, pending: Future, index: int) -> Frame:
+        """The read-ahead's frame ``index``, or the frame read here if the reader has not delivered it within
+        one read's time (the reader's late result is dropped)."""
+        try:
+            return pending.result(timeout=self._read_seconds)
+        except TimeoutError:
+            pending.cancel()  # not started yet: never starts
+            log.debug("frame %d: the read-ahead thread was late; read in the frame loop", index)
+            return self._read(index)
 
     def prefetch(self, index: int) -> None:
         """Start reading frame ``index`` in the background (no-op without read-ahead, past the end, or when
@@ -118,7 +158,7 @@ class FrameCache:
             self._kept.move_to_end(index)
             return self._kept[index]
         pending = self._pending.pop(index, None)
-        frame = pending.result() if pending is not None else self._read(index)
+        frame = self._collect(pending, index) if pending is not None else self._read(index)
         self._frames[index] = frame
         while len(self._frames) > self.capacity:
             self._frames.popitem(last=False)
