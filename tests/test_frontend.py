@@ -18,8 +18,9 @@ from mipslam.io.tum import read_tum_trajectory
 from mipslam.mapping import Mapper, MappingView
 from mipslam.pipeline import run_slam
 from mipslam.tracking import Tracker
-from mipslam.frontend import (FeatureOptions, Frontend, estimate_relative_pose, extract_features, match_features,
-                              mutual_ratio_pairs)
+from mipslam.frontend import (FeatureOptions, FrameFeatures, Frontend, _projection_gate, estimate_relative_pose,
+                              extract_features, guided_matches, match_features, mutual_ratio_pairs)
+from mipslam.render import cpu as cpu_backend
 from mipslam.geometry.se3 import rotation_angle, se3_exp
 from mipslam.types import Frame, Intrinsics
 
@@ -195,6 +196,44 @@ def test_matching_among_candidate_pairs_equals_opencvs_masked_brute_force():
             expected = _masked_brute_force(query, train, ratio, max_hamming, allowed)
             got = match_features(query, train, ratio, max_hamming, candidates=np.argwhere(allowed))
             np.testing.assert_array_equal(got, expected)
+
+
+def _random_features(rng, count: int, bits: int, width: int, height: int) -> FrameFeatures:
+    """Keypoints on a coarse grid (ties in position), descriptors of few distinct bits (ties in distance),
+    points with some missing depth (NaN) and some behind a camera that turns away."""
+    keypoints = (rng.integers(0, 40, size=(count, 2)) * [width / 40, height / 40]).astype(np.float32)
+    descriptors = rng.integers(0, 2 ** bits, size=(count, 32)).astype(np.uint8)
+    points = np.concatenate([rng.uniform(-2, 2, size=(count, 2)), rng.uniform(-0.5, 4, size=(count, 1))], axis=1)
+    points[rng.random(count) < 0.1] = np.nan
+    return FrameFeatures(keypoints, descriptors, points)
+
+
+@pytest.mark.skipif(not cpu_backend.is_available(), reason="the compiled CPU library is not built")
+def test_compiled_guided_matching_equals_the_k_d_tree_reference():
+    rng = np.random.default_rng(3)
+    intrinsics = Intrinsics(fx=150.0, fy=150.0, cx=80.0, cy=60.0, width=WIDTH, height=HEIGHT)
+    library = cpu_backend.load_extension()
+    compared = 0
+    for trial in range(80):
+        reference = _random_features(rng, int(rng.integers(0, 300)), int(rng.integers(1, 6)), WIDTH, HEIGHT)
+        current = _random_features(rng, int(rng.integers(0, 300)), int(rng.integers(1, 6)), WIDTH, HEIGHT)
+        T_rc = se3_exp(torch.tensor(rng.normal(0, [0.3, 0.3, 0.3, 0.5, 0.5, 0.5]), dtype=torch.float64))
+        radius = float(rng.choice([0.0, 0.02, 0.1, 0.5, 2.0]))
+        options = FeatureOptions(guided_radius=radius, ratio_test=float(rng.choice([0.85, 1.0])),
+                                 max_hamming=int(rng.choice([64, 20])))
+        expected = match_features(current.descriptors, reference.descriptors, options.ratio_test,
+                                  options.max_hamming, _projection_gate(reference, current, intrinsics, T_rc, radius))
+        np.testing.assert_array_equal(guided_matches(reference, current, intrinsics, T_rc, options), expected)
+        compared += len(expected)
+    assert compared > 100  # the trials found matches to compare
+    # projections far outside the image and an exact hit at radius 0
+    keypoints = np.array([[10.0, 10.0], [20.0, 5.0]])
+    descriptors = np.zeros((2, 32), np.uint8)
+    far = np.array([[1e300, -1e300], [10.0, 10.0]])
+    np.testing.assert_array_equal(
+        library.guided_match(keypoints, far, np.array([0, 1]), 0.0, descriptors, descriptors, 0.85, 64), [[0, 1]])
+    with pytest.raises(RuntimeError, match="reference point 5"):
+        library.guided_match(keypoints, far, np.array([0, 5]), 1.0, descriptors, descriptors, 0.85, 64)
 
 
 # ----------------------------------------------------------------------------- with the tracker and the pipeline

@@ -22,6 +22,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from mipslam.errors import BackendUnavailableError, RenderError
@@ -29,7 +30,7 @@ from mipslam.errors import BackendUnavailableError, RenderError
 log = logging.getLogger("mipslam.render.cpu")
 
 #: The C interface version this module speaks (mipslam_abi_version in raster_ext.cpp).
-ABI_VERSION = 3
+ABI_VERSION = 4
 _ERROR_BYTES = 2048
 _ERR_VALUE, _ERR_MEMORY = 1, 3
 REBUILD_HINT = "run ./scripts/setup or python -m mipslam.render.cpu.build"
@@ -52,6 +53,7 @@ _SIGNATURES = {
     "mipslam_vector_math": ([_p, _p, _i64, _i64], None),
     "mipslam_direct_align": ([_i64] + [_p] * 7 + [_i64, _f64, _f64, _p, _i64, ctypes.c_int, _p, _p, _p, _i64],
                              ctypes.c_int),
+    "mipslam_guided_match": ([_p, _i64, _p, _p, _i64, _f64, _p, _p, _i64, _f64, _i64, _p, _p, _p, _i64], ctypes.c_int),
 }
 
 
@@ -211,6 +213,28 @@ class Library:
                    float(alpha_color), float(convergence), _c_array(ctypes.c_double, constants), len(constants),
                    int(threads), _ptr(T), _ptr(stats))
         return T, int(stats[0]), int(stats[1]), bool(stats[2])
+
+    # --- the front-end's guided matching (feature_match.h) ---------------------------------------------
+    def guided_match(self, keypoints, projections, projection_ids, limit: float, query, train, ratio: float,
+                     max_hamming: int):
+        """Mutual, ratio-tested Hamming matches between keypoints [M, 2] and the reference points whose projections
+        [P, 2] (px, float64; projection_ids [P] int64 into train) lie within ``limit`` px of them; query [M, 32]
+        and train [N, 32] uint8 ORB descriptors (numpy arrays). -> [K, 2] int64 (keypoint, reference point) pairs
+        by keypoint, as :func:`mipslam.frontend._match_candidates` on :func:`mipslam.frontend._projection_gate`'s pairs."""
+        keypoints = np.ascontiguousarray(keypoints, dtype=np.float64).reshape(-1, 2)
+        projections = np.ascontiguousarray(projections, dtype=np.float64).reshape(-1, 2)
+        projection_ids = np.ascontiguousarray(projection_ids, dtype=np.int64).reshape(-1)
+        query = np.ascontiguousarray(query, dtype=np.uint8).reshape(-1, 32)
+        train = np.ascontiguousarray(train, dtype=np.uint8).reshape(-1, 32)
+        if len(projection_ids) != len(projections) or len(query) != len(keypoints):
+            raise RuntimeError(f"mipslam guided matching: {len(projections)} projections with {len(projection_ids)} "
+                               f"ids, {len(keypoints)} keypoints with {len(query)} descriptors")
+        pairs = np.empty((max(1, len(keypoints)), 2), dtype=np.int64)
+        count = np.zeros(1, dtype=np.int64)
+        self._call(self._lib.mipslam_guided_match, keypoints.ctypes.data, len(keypoints), projections.ctypes.data,
+                   projection_ids.ctypes.data, len(projections), float(limit), query.ctypes.data, train.ctypes.data,
+                   len(train), float(ratio), int(max_hamming), pairs.ctypes.data, count.ctypes.data)
+        return pairs[: int(count[0])].copy()
 
     # --- tile rasterizer ------------------------------------------------------------------------------
     @staticmethod

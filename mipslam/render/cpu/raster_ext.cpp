@@ -21,6 +21,7 @@
 #include <vector>
 
 #include "direct_align.h"
+#include "feature_match.h"
 #include "footprint_simd.h"
 #include "projection.h"
 #include "simd_math.h"
@@ -827,7 +828,7 @@ int guarded(char* err, int64_t err_len, F&& body) {
 #endif
 
 // Bumped whenever a signature below changes (library.py refuses a library of another version).
-MIPSLAM_API int mipslam_abi_version(void) { return 3; }
+MIPSLAM_API int mipslam_abi_version(void) { return 4; }
 
 // Hash of the sources and flags the library was built from (mipslam/render/cpu/build.py, source_hash), also
 // readable from the file without loading it (the marker).
@@ -1053,5 +1054,25 @@ MIPSLAM_API int mipslam_direct_align(int64_t levels, const float* const* points,
         stats[0] = outcome.steps;
         stats[1] = outcome.points;
         stats[2] = outcome.ran ? 1 : 0;
+    });
+}
+
+// The front-end's guided matching (feature_match.h): keypoints [M, 2] and projections [P, 2] px float64,
+// projection_ids [P] in [0, N), descriptors query [M, 32] and train [N, 32] uint8; the mutual, ratio-tested pairs
+// (keypoint, reference point) by keypoint into pairs [M, 2], their number into count[0].
+MIPSLAM_API int mipslam_guided_match(const double* keypoints, int64_t M, const double* projections,
+                                     const int64_t* projection_ids, int64_t P, double limit, const uint8_t* query,
+                                     const uint8_t* train, int64_t N, double ratio, int64_t max_hamming,
+                                     int64_t* pairs, int64_t* count, char* err, int64_t err_len) {
+    using namespace mipslam_cpu;
+    return guarded(err, err_len, [&] {
+        MIPSLAM_CHECK(M >= 0 && P >= 0 && N >= 0, "mipslam_guided_match: bad sizes");
+        for (int64_t m = 0; m < 2 * M; ++m)
+            MIPSLAM_CHECK(std::isfinite(keypoints[m]), "mipslam_guided_match: keypoint ", m / 2, " is not finite");
+        for (int64_t j = 0; j < P; ++j)
+            MIPSLAM_CHECK(projection_ids[j] >= 0 && projection_ids[j] < N, "mipslam_guided_match: projection ", j,
+                          " names reference point ", projection_ids[j], " of ", N);
+        count[0] = feature_match::guided_match(keypoints, M, projections, projection_ids, P, limit, query, train, N,
+                                               ratio, max_hamming, pairs);
     });
 }
