@@ -345,3 +345,31 @@ def test_the_direct_alignment_reuses_the_start_judges_render_of_the_chosen_start
     # the same pose, bit for bit, with one render fewer
     assert torch.equal(reused.T_wc, fresh.T_wc) and reused.loss == fresh.loss
     assert after_judge - 2 == len(renders) - after_judge - 1
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_pose_rprop_is_bit_equal_to_torch_rprop(dtype):
+    # gradients that keep, flip and lose their sign, zeros, and steps that reach the cap
+    generator = torch.Generator().manual_seed(7)
+    start = [torch.randn(3, generator=generator, dtype=dtype) for _ in range(3)]
+    ours = [p.clone().requires_grad_(True) for p in start]
+    theirs = [p.clone().requires_grad_(True) for p in start]
+    lrs = (5e-4, 1e-3, 2e-3)
+    optimizer = tracking.PoseRprop([{"params": [p], "lr": lr} for p, lr in zip(ours, lrs)], max_step_ratio=4.0)
+    reference = torch.optim.Rprop([{"params": [p], "lr": lr, "step_sizes": (0.0, lr * 4.0)} for p, lr in zip(theirs, lrs)],
+                                  etas=(0.5, 1.2))
+    for step in range(60):
+        grads = [torch.randn(3, generator=generator, dtype=dtype) for _ in range(3)]
+        if step % 5 == 0:
+            grads[0] = grads[0].abs()  # runs of one sign: the step grows to the cap
+        grads[1][torch.rand(3, generator=generator) < 0.2] = 0.0
+        for p, q, g in zip(ours, theirs, grads):
+            p.grad, q.grad = g.clone(), g.clone()
+        optimizer.step()
+        reference.step()
+        for p, q in zip(ours, theirs):
+            assert torch.equal(p.detach(), q.detach())
+            assert torch.equal(torch.from_numpy(optimizer.step_sizes[p]), reference.state[q]["step_size"])
+        optimizer.zero_grad(set_to_none=True)
+        assert all(p.grad is None for p in ours)
+    assert tracking._converged(optimizer, ours[:2], 1.0, 1e9) and not tracking._converged(optimizer, ours[:2], 0.0, 0.0)
