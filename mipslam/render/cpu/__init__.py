@@ -17,6 +17,7 @@ backward. Modules, one job each:
     autograd.py  the torch.autograd.Functions around the library's forward and backward
     backend.py   the entry points (rasterize, rasterize_projected, project_footprints, ...)
     direct_align.h  tracking's direct RGB-D alignment (align_direct), the twin of mipslam.geometry.direct's
+    feature_match.h the feature front-end's guided matching, the twin of mipslam.frontend's k-d tree gate
 
 Nothing here compiles: a missing or stale build logs one warning, :func:`is_available` is False,
 ``backend="auto"`` uses the torch backend and ``backend="cpu"`` raises
