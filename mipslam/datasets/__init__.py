@@ -61,6 +61,12 @@ def make_sequence(cfg: DatasetConfig) -> RGBDSequence:
 
 log = logging.getLogger("mipslam.datasets")
 
+# How long the frame loop waits for a frame the read-ahead thread has not delivered before reading it itself:
+# two of its own reads' time (the reader may have started just before it was asked), and at least a
+# scheduler slice's worth (small synthetic frames read in a millisecond).
+READ_AHEAD_PATIENCE_READS = 2.0
+READ_AHEAD_MIN_WAIT_S = 0.05
+
 
 def _run_at_idle_priority() -> None:
     """Put the calling thread in Linux's SCHED_IDLE class: it runs only on a core nothing else wants.
@@ -90,8 +96,9 @@ class FrameCache:
 
     ``read_ahead``: :meth:`prefetch` reads a frame on one background thread while the caller works (decoding
     and downscaling release the GIL), so the frame loop does not wait for the disk. The thread runs at idle
-    priority (:func:`_run_at_idle_priority`); a frame it has not delivered within one read's time of being
-    asked for (the reader starved by other processes on every core) is read by the caller instead. A
+    priority (:func:`_run_at_idle_priority`); a frame it has not delivered within two reads' time (at least
+    50 ms) of being asked for (the reader starved by other processes on every core) is read by the caller
+    instead. A
     camera's sequence must not read ahead (its reader delivers the newest frame when asked). Errors surface
     when the frame is asked for.
     """
@@ -108,20 +115,23 @@ class FrameCache:
         self._reader = (ThreadPoolExecutor(max_workers=1, thread_name_prefix="mipslam-read",
                                            initializer=_run_at_idle_priority) if read_ahead else None)
         self._pending: dict[int, Future] = {}
-        self._read_seconds = 0.0  # how long the latest read took (either thread)
+        # how long the latest read in the caller's thread took (the idle-priority reader's own reads can take
+        # much longer while it is starved, so they do not count)
+        self._read_seconds = 0.0
 
-    def _read(self, index: int) -> Frame:
+    def _read(self, index: int, timed: bool = True) -> Frame:
         start = time.perf_counter()
         frame = self.sequence[index]
         frame = replace(frame, color=frame.color.to(self.device), depth=frame.depth.to(self.device))
-        self._read_seconds = time.perf_counter() - start
+        if timed:
+            self._read_seconds = time.perf_counter() - start
         return frame
 
     def _collect(self, pending: Future, index: int) -> Frame:
-        """The read-ahead's frame ``index``, or the frame read here if the reader has not delivered it within
-        one read's time (the reader's late result is dropped)."""
+        """The read-ahead's frame ``index``, or the frame read here if the reader has not delivered it in time
+        (``READ_AHEAD_*``; the reader's late result is dropped)."""
         try:
-            return pending.result(timeout=self._read_seconds)
+            return pending.result(timeout=max(READ_AHEAD_PATIENCE_READS * self._read_seconds, READ_AHEAD_MIN_WAIT_S))
         except TimeoutError:
             pending.cancel()  # not started yet: never starts
             log.debug("frame %d: the read-ahead thread was late; read in the frame loop", index)
@@ -133,7 +143,7 @@ class FrameCache:
         if (self._reader is None or not 0 <= index < len(self.sequence) or index in self._frames
                 or index in self._pending):
             return
-        self._pending[index] = self._reader.submit(self._read, index)
+        self._pending[index] = self._reader.submit(self._read, index, False)
 
     def keep(self, index: int) -> None:
         """Keep frame ``index`` beyond the last ``capacity`` frames, within ``kept_bytes`` (the least recently
