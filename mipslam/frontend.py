@@ -302,8 +302,9 @@ def guided_matches(reference: FrameFeatures, current: FrameFeatures, intrinsics:
     size.  -> [K, 2] int64 pairs (current keypoint, reference point), by keypoint.
 
     The compiled library's twin (mipslam/render/cpu/feature_match.h: a grid instead of a k-d tree, no
-    candidate arrays: 4.6 -> 1.0 ms for a frame of fr1_rpy's 1000 keypoints) gives the same pairs as :func:`_projection_gate`
-    + :func:`match_features`, the reference it is tested against, which runs where the library is not built.
+    candidate arrays: 4.6 -> 1.0 ms for a frame of fr1_rpy's 1000 keypoints) gives the same pairs as
+    :func:`_projection_gate` + :func:`match_features`, the reference it is tested against, which runs where
+    the library is not built.
     """
     library = _compiled_library()
     if library is None:
