@@ -36,7 +36,8 @@ inline int hamming256(const uint8_t* a, const uint8_t* b) {
 #if defined(__AVX2__)
 __attribute__((target("popcnt")))
 #endif
-inline int64_t guided_match(const double* keypoints, int64_t M, const double* projections, const int64_t* projection_ids,
+inline int64_t guided_match(const double* keypoints, int64_t M, const double* projections,
+                            const int64_t* projection_ids,
                             int64_t P, double limit, const uint8_t* query, const uint8_t* train, int64_t N,
                             double ratio, int64_t max_hamming, int64_t* pairs) {
     if (M == 0 || P == 0 || !(limit >= 0.0)) return 0;
@@ -59,7 +60,10 @@ inline int64_t guided_match(const double* keypoints, int64_t M, const double* pr
     for (int64_t c = 0; c < nx * ny; ++c) start[c + 1] += start[c];
     {
         std::vector<int64_t> fill(start.begin(), start.end() - 1);
-        for (int64_t m = 0; m < M; ++m) members[fill[cell_y(keypoints[2 * m + 1]) * nx + cell_x(keypoints[2 * m])]++] = m;
+        for (int64_t m = 0; m < M; ++m) {
+            const int64_t c = cell_y(keypoints[2 * m + 1]) * nx + cell_x(keypoints[2 * m]);
+            members[fill[c]++] = m;
+        }
     }
 
     constexpr int64_t NONE = -1;
@@ -76,8 +80,10 @@ inline int64_t guided_match(const double* keypoints, int64_t M, const double* pr
         const double gx0 = std::floor((px - reach - x_min) / cell), gx1 = std::floor((px + reach - x_min) / cell);
         const double gy0 = std::floor((py - reach - y_min) / cell), gy1 = std::floor((py + reach - y_min) / cell);
         if (!(gx1 >= 0 && gy1 >= 0 && gx0 <= nx - 1 && gy0 <= ny - 1)) continue;  // also skips NaN
-        const int64_t cx0 = static_cast<int64_t>(std::fmax(gx0, 0.0)), cx1 = static_cast<int64_t>(std::fmin(gx1, nx - 1.0));
-        const int64_t cy0 = static_cast<int64_t>(std::fmax(gy0, 0.0)), cy1 = static_cast<int64_t>(std::fmin(gy1, ny - 1.0));
+        const int64_t cx0 = static_cast<int64_t>(std::fmax(gx0, 0.0));
+        const int64_t cx1 = static_cast<int64_t>(std::fmin(gx1, nx - 1.0));
+        const int64_t cy0 = static_cast<int64_t>(std::fmax(gy0, 0.0));
+        const int64_t cy1 = static_cast<int64_t>(std::fmin(gy1, ny - 1.0));
         const int64_t n = projection_ids[j];
         const uint8_t* t = train + 32 * n;
         for (int64_t cy = cy0; cy <= cy1; ++cy) {
