@@ -37,6 +37,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from mipslam.config import FrontendConfig
+from mipslam.render import compiled_library
 from mipslam.types import Frame, Intrinsics
 
 _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
@@ -306,7 +307,7 @@ def guided_matches(reference: FrameFeatures, current: FrameFeatures, intrinsics:
     :func:`_projection_gate` + :func:`match_features`, the reference it is tested against, which runs where
     the library is not built.
     """
-    library = _compiled_library()
+    library = compiled_library()
     if library is None:
         return match_features(current.descriptors, reference.descriptors, options.ratio_test, options.max_hamming,
                               _projection_gate(reference, current, intrinsics, T_rc, options.guided_radius))
@@ -316,13 +317,6 @@ def guided_matches(reference: FrameFeatures, current: FrameFeatures, intrinsics:
     limit = options.guided_radius * max(intrinsics.width, intrinsics.height)
     return library.guided_match(current.keypoints, projected, ids, limit, current.descriptors,
                                 reference.descriptors, options.ratio_test, options.max_hamming)
-
-
-def _compiled_library():
-    """The compiled CPU library (mipslam.render.cpu), or None where it is not built or disabled."""
-    from mipslam.render.cpu.library import is_available, load_extension
-
-    return load_extension() if is_available() else None
 
 
 def _solve(reference: FrameFeatures, current: FrameFeatures, intrinsics: Intrinsics, options: FeatureOptions,

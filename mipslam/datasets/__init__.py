@@ -98,9 +98,8 @@ class FrameCache:
     and downscaling release the GIL), so the frame loop does not wait for the disk. The thread runs at idle
     priority (:func:`_run_at_idle_priority`); a frame it has not delivered within two reads' time (at least
     50 ms) of being asked for (the reader starved by other processes on every core) is read by the caller
-    instead. A
-    camera's sequence must not read ahead (its reader delivers the newest frame when asked). Errors surface
-    when the frame is asked for.
+    instead. A camera's sequence must not read ahead (its reader delivers the newest frame when asked).
+    Errors surface when the frame is asked for.
     """
 
     def __init__(self, sequence: RGBDSequence, device: torch.device, capacity: int, *, read_ahead: bool = False,

@@ -25,7 +25,7 @@ from mipslam.render.projection import ProjectedGaussians, project_gaussians
 from mipslam.render.rasterize_torch import FootprintSettings, rasterize_projected
 
 __all__ = ["rasterize", "render", "RenderOptions", "render_option_problems", "RenderOutput", "Camera", "MODES", "BACKENDS",
-           "available_backends", "direct_aligner", "project_gaussians", "ProjectedGaussians"]
+           "available_backends", "direct_aligner", "compiled_library", "project_gaussians", "ProjectedGaussians"]
 
 log = logging.getLogger(__name__)
 
@@ -171,6 +171,13 @@ def _cpu_backend_module():
 def available_backends() -> tuple[str, ...]:
     """Backends usable on this machine (``torch`` always)."""
     return ("torch", "cpu") if _cpu_backend_module() is not None else ("torch",)
+
+
+def compiled_library():
+    """The loaded compiled CPU library (:class:`mipslam.render.cpu.Library`) where it is installed and built, else
+    None: for callers with a numpy reference of their own (the front-end's guided matching)."""
+    cpu = _cpu_backend_module()
+    return None if cpu is None else cpu.load_extension()
 
 
 def direct_aligner(backend: str, device: torch.device):
