@@ -12,7 +12,7 @@ from mipslam.config import RenderConfig
 from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry.camera import project, sampling_rate
 from mipslam.geometry.se3 import transform_points
-from mipslam.render import RenderOutput, rasterize
+from mipslam.render import RenderOutput, rasterize, rasterize_pose_only
 from mipslam.types import Intrinsics
 
 
@@ -45,6 +45,28 @@ def render_view(
         gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.colors,
         T_cw, K, intrinsics.width, intrinsics.height, mode=mode or config.mode, backend=config.backend,
         pose_only=pose_only, normalized_depth=normalized_depth, max_sampling_rate=rates, **render_options(config),
+    )
+
+
+def render_view_pose_only(
+    gaussians: ActivatedGaussians,
+    T_cw: torch.Tensor,  # [4, 4] world-to-camera, the map's dtype and device
+    intrinsics: Intrinsics,
+    config: RenderConfig,
+    *,
+    mode: str | None = None,
+):
+    """:func:`render_view` with ``pose_only`` and the backward to ``T_cw`` written out
+    (:func:`mipslam.render.rasterize_pose_only`): a :class:`mipslam.render.cpu.PoseOnlyRender`, or None where
+    only autograd can render the call (render with :func:`render_view` then)."""
+    dtype, device = gaussians.means.dtype, gaussians.means.device
+    T_cw = T_cw.to(dtype=dtype, device=device)
+    K = intrinsics.matrix(dtype=dtype, device=device)
+    rates = filter_sampling_rates(gaussians, T_cw, K) if config.filter_3d else None
+    return rasterize_pose_only(
+        gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.colors,
+        T_cw, K, intrinsics.width, intrinsics.height, mode=mode or config.mode, backend=config.backend,
+        max_sampling_rate=rates, **render_options(config),
     )
 
 

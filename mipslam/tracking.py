@@ -24,7 +24,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 import torch
@@ -35,12 +35,12 @@ from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry import nearest_rigid, resize_area
 from mipslam.frontend import Frontend, FrontendStart
 from mipslam.geometry.direct import DirectReference, DirectTarget, direct_reference, direct_target, pyramid_scales
-from mipslam.geometry.se3 import se3_exp, se3_exp_times, se3_inverse, se3_log
+from mipslam.geometry.se3 import se3_exp, se3_exp_times, se3_exp_times_vjp, se3_inverse, se3_log
 from mipslam.losses.photometric import (RGBDLoss, RGBDMasks, apply_affine_exposure, image_gradient_mask, rgbd_l1_loss,
-                                        rgbd_masks)
+                                        rgbd_l1_loss_and_gradients, rgbd_masks)
 from mipslam.loop.registration import RegistrationOptions, register_rgbd_odometry
 from mipslam.render import RenderOutput, direct_aligner
-from mipslam.rendering import frustum_subset, render_view
+from mipslam.rendering import frustum_subset, render_view, render_view_pose_only
 from mipslam.types import Frame, Intrinsics
 
 if TYPE_CHECKING:
@@ -121,6 +121,16 @@ class _StartView:
     subset: ActivatedGaussians
     render: RenderOutput
     loss: RGBDLoss
+
+
+@dataclass(frozen=True)
+class _StepRender:
+    """A gradient step's render (:meth:`Tracker._step_render`): its loss, opacity [h, w] (no gradient), and
+    ``backward()``, which sets the pose parameters' (and the exposure's) ``.grad``."""
+
+    loss: RGBDLoss
+    alpha: torch.Tensor
+    backward: Callable[[], None]
 
 
 @dataclass
@@ -279,6 +289,39 @@ class Tracker:
         ``tracking.coverage_opacity``)."""
         return int(((alpha >= self.config.coverage_opacity) & level.target_masks.depth).sum())
 
+    def _step_render(self, gaussians: ActivatedGaussians, rho: torch.Tensor, phi: torch.Tensor, T_cw_init: torch.Tensor,
+                     level: _Level, exposure: torch.Tensor | None) -> _StepRender:
+        """A gradient step's render at ``exp([rho, phi]) T_cw_init`` ([3], [3] leaf tensors; [4, 4] float64
+        world-to-camera) against ``level``, and its backward into ``rho``, ``phi`` and ``exposure`` [2] (leaf
+        tensors whose ``.grad`` it sets).
+
+        On the compiled CPU backend the chain rule is carried by hand (:func:`se3_exp_times_vjp`,
+        :func:`~mipslam.rendering.render_view_pose_only`, :func:`rgbd_l1_loss_and_gradients`): the same library
+        calls and tensor operations as autograd's, so the same bits, without its graph and engine (about a
+        quarter of a step's time at 160x120). Elsewhere autograd (:meth:`_loss`), the reference
+        (tests/test_tracking.py compares the two)."""
+        dtype = gaussians.means.dtype
+        T_cw, pose_vjp = se3_exp_times_vjp(rho, phi, T_cw_init, dtype)  # (se3_exp([rho, phi]) @ T_cw_init).to(dtype)
+        render = render_view_pose_only(gaussians, T_cw, level.intrinsics, self.render_config, mode=level.render_mode)
+        if render is None:
+            T_cw = se3_exp_times(rho, phi, T_cw_init, dtype)
+            loss, alpha = self._loss(gaussians, T_cw, level, exposure)
+            return _StepRender(loss, alpha, loss.total.backward)
+        cfg = self.config
+        masks = level.target_masks.where_opaque(render.alpha, cfg.opacity_threshold)
+        affine = None if exposure is None else tuple(exposure.detach().unbind())
+        loss, gradients = rgbd_l1_loss_and_gradients(
+            render.color, render.depth, level.color, level.depth, alpha_color=cfg.alpha_color, masks=masks,
+            exposure=affine, depth_alpha=render.alpha if cfg.depth_normalise else None,
+            depth_alpha_floor=cfg.depth_alpha_floor, depth_outlier_ratio=cfg.depth_outlier_ratio)
+
+        def backward() -> None:
+            rho.grad, phi.grad = pose_vjp(render.viewmat_gradient(gradients.color, gradients.depth))
+            if exposure is not None:
+                exposure.grad = torch.stack([gradients.log_gain, gradients.bias])
+
+        return _StepRender(loss, render.alpha, backward)
+
     def _loss(self, gaussians: ActivatedGaussians, T_cw: torch.Tensor, level: _Level, exposure: torch.Tensor | None):
         """The loss of the map rendered at ``T_cw`` [4, 4] against ``level``, and the render's opacity [h, w]."""
         out = render_view(gaussians, T_cw, level.intrinsics, self.render_config, mode=level.render_mode,
@@ -347,8 +390,8 @@ class Tracker:
                     for group, base in zip(optimizer.param_groups, base_lrs):
                         group["lr"] = base * decay ** i
                 xi = torch.cat([rho.detach(), phi.detach()])  # this step's twist, before the optimiser moves it
-                T_cw = se3_exp_times(rho, phi, T_cw_init, dtype)  # (se3_exp([rho, phi]) @ T_cw_init).to(dtype)
-                loss, alpha = self._loss(gaussians, T_cw, level, exposure)
+                step_render = self._step_render(gaussians, rho, phi, T_cw_init, level, exposure)
+                loss, alpha = step_render.loss, step_render.alpha
                 if not torch.isfinite(loss.total):
                     return self._failed(T_wc_init, iterations, "non_finite_loss", math.nan, 0.0)
                 if level is full:
@@ -362,7 +405,7 @@ class Tracker:
                     iterations += 1
                     break  # no render would judge a further step: its backward is skipped
                 optimizer.zero_grad(set_to_none=True)
-                loss.total.backward()
+                step_render.backward()
                 optimizer.step()
                 iterations += 1
                 step = float((torch.cat([rho.detach(), phi.detach()]) - xi).norm())

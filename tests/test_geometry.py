@@ -21,6 +21,7 @@ from mipslam.geometry import (
     se3_compose,
     se3_exp,
     se3_exp_times,
+    se3_exp_times_vjp,
     se3_inverse,
     se3_log,
     so3_exp,
@@ -278,6 +279,28 @@ def test_se3_exp_times_matches_se3_exp_values_and_gradients(angle):
             assert torch.allclose(out_ref, out_new, rtol=0, atol=1e-14)
             assert torch.allclose(rho_ref, rho_new, rtol=1e-12, atol=1e-13)
             assert torch.allclose(phi_ref, phi_new, rtol=1e-12, atol=1e-13)
+
+
+@pytest.mark.parametrize("angle", [0.0, 5e-3, 0.0101, 0.3])
+def test_se3_exp_times_vjp_is_bit_equal_to_autograd(angle):
+    """Tracking's compiled step carries the pose's chain rule itself: value and gradients equal to
+    se3_exp_times under autograd, bit for bit, in float32 and float64."""
+    generator = torch.Generator().manual_seed(int(angle * 1e4) + 31)
+    T = se3_exp(torch.randn(6, generator=generator, dtype=F64))
+    for dtype in (torch.float32, F64):
+        axis = torch.randn(3, generator=generator, dtype=F64)
+        rho = (0.05 * torch.randn(3, generator=generator, dtype=F64)).to(dtype).requires_grad_(True)
+        phi = (axis / axis.norm() * angle).to(dtype).requires_grad_(True)
+        upstream = torch.randn(4, 4, generator=generator, dtype=F64).to(dtype)
+        out = se3_exp_times(rho, phi, T, dtype)
+        out.backward(upstream)
+        value, vjp = se3_exp_times_vjp(rho, phi, T, dtype)
+        grad_rho, grad_phi = vjp(upstream)
+        assert torch.equal(value, out.detach()) and not value.requires_grad
+        assert torch.equal(grad_rho, rho.grad) and torch.equal(grad_phi, phi.grad)
+        assert grad_rho.dtype == dtype and grad_phi.dtype == dtype
+    with pytest.raises(ValueError, match="rho \\[3\\], phi \\[3\\] and T \\[4, 4\\]"):
+        se3_exp_times_vjp(torch.zeros(3), torch.zeros(4), T, F64)
 
 
 def test_se3_exp_times_gradcheck_and_shape_errors():

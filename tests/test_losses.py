@@ -16,6 +16,7 @@ from mipslam.losses.photometric import (
     masked_l1,
     normalised_depth,
     rgbd_l1_loss,
+    rgbd_l1_loss_and_gradients,
     rgbd_masks,
 )
 from mipslam.losses.regularizers import isotropy_loss, scale_cap_loss
@@ -323,3 +324,48 @@ def test_coverage_loss_is_the_missing_opacity_where_the_sensor_saw_a_surface():
     assert value.item() == pytest.approx((0.0 + 0.5 + 0.75) / 3)
     value.backward()
     assert torch.allclose(alpha.grad, torch.tensor([[0.0, -1 / 3], [-1 / 3, 0.0]]))
+
+
+@pytest.mark.parametrize("exposure,depth_normalise,outlier_ratio,alpha_color", [
+    (False, False, 0.0, 0.5), (True, False, 0.0, 0.5), (True, True, 3.0, 0.8), (False, True, 0.0, 0.0),
+])
+def test_loss_and_gradients_are_bit_equal_to_autograd(exposure, depth_normalise, outlier_ratio, alpha_color):
+    """Tracking's compiled step takes the loss's gradients from rgbd_l1_loss_and_gradients: they must be
+    autograd's through rgbd_l1_loss (and the exposure model), bit for bit, or tracking would change."""
+    color_gt, depth_gt = _frame(24, 32, seed=3)
+    generator = torch.Generator().manual_seed(4)
+    color0 = (color_gt + 0.1 * torch.randn(color_gt.shape, generator=generator)).clamp(0, 1)
+    depth0 = depth_gt + 0.05 * torch.randn(depth_gt.shape, generator=generator)
+    alpha = torch.rand(depth_gt.shape, generator=generator)
+    depth_gt[0, :5] = 0.0
+    masks = rgbd_masks(color_gt, depth_gt, extra_color_mask=image_gradient_mask(color_gt, 50.0)).where_opaque(alpha, 0.3)
+    params = torch.tensor([0.07, -0.02], requires_grad=True)
+    color, depth = color0.clone().requires_grad_(True), depth0.clone().requires_grad_(True)
+    rendered = apply_affine_exposure(color, params[0], params[1]) if exposure else color
+    reference = rgbd_l1_loss(rendered, depth, color_gt, depth_gt, alpha_color=alpha_color, masks=masks,
+                             depth_alpha=alpha if depth_normalise else None, depth_outlier_ratio=outlier_ratio)
+    reference.total.backward()
+    loss, grads = rgbd_l1_loss_and_gradients(
+        color0, depth0, color_gt, depth_gt, alpha_color=alpha_color, masks=masks,
+        exposure=tuple(params.detach().unbind()) if exposure else None,
+        depth_alpha=alpha if depth_normalise else None, depth_outlier_ratio=outlier_ratio)
+    assert torch.equal(loss.total, reference.total.detach())
+    assert (loss.num_color_pixels, loss.num_depth_pixels) == (reference.num_color_pixels, reference.num_depth_pixels)
+    assert torch.equal(grads.color, color.grad) and torch.equal(grads.depth, depth.grad)
+    if exposure:
+        assert torch.equal(torch.stack([grads.log_gain, grads.bias]), params.grad)
+    else:
+        assert grads.log_gain is None and grads.bias is None
+
+
+def test_loss_and_gradients_with_empty_masks_are_zero_not_nan():
+    color_gt, depth_gt = _frame()
+    empty = rgbd_masks(color_gt, depth_gt).where_opaque(torch.zeros_like(depth_gt), 0.5)
+    loss, grads = rgbd_l1_loss_and_gradients(color_gt + 0.2, depth_gt + 1.0, color_gt, depth_gt, alpha_color=0.5,
+                                             masks=empty, exposure=(torch.tensor(0.1), torch.tensor(0.0)))
+    assert loss.total.item() == 0.0 and loss.num_color_pixels == 0 and loss.num_depth_pixels == 0
+    for grad in (grads.color, grads.depth, grads.log_gain, grads.bias):
+        assert torch.equal(grad, torch.zeros_like(grad))
+    with pytest.raises(ValueError, match="scalar exposure model"):
+        rgbd_l1_loss_and_gradients(color_gt, depth_gt, color_gt, depth_gt, alpha_color=0.5, masks=empty,
+                                   exposure=(torch.zeros(3), torch.zeros(3)))

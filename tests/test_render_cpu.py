@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from mipslam.errors import BackendUnavailableError
-from mipslam.render import rasterize
+from mipslam.render import rasterize, rasterize_pose_only
 from mipslam.render import cpu as cpu_backend
 from mipslam.geometry.se3 import se3_exp
 from test_render_extremes import extreme_scene
@@ -182,6 +182,35 @@ def test_pose_only_gives_the_same_pose_gradient(ext, mode):
     assert all(g is None for g in grads_pose[:5])
     assert torch.allclose(grads_pose[5], grads_full[5], rtol=1e-5, atol=1e-6)
     assert cosine(grads_pose[5], grads_torch[5]) >= 0.999
+
+
+@pytest.mark.parametrize("mode", ["mip", "eaa", "exact"])
+def test_pose_only_render_without_autograd_is_bit_equal_to_autograd(ext, mode):
+    """rasterize_pose_only (tracking's compiled step) against rasterize + autograd: the same images and viewmat
+    gradient, bit for bit, for any upstream gradient images."""
+    width, height, focal = 40, 30, 36.0
+    viewmat, K = camera(width, height, focal)
+    scene = mixed_scene(120, width, height, focal, seed=12)
+    generator = torch.Generator().manual_seed(13)
+    grad_color, grad_depth = torch.randn(height, width, 3, generator=generator), torch.randn(height, width,
+                                                                                               generator=generator)
+    view = viewmat.clone().requires_grad_(True)
+    out = rasterize(*scene, view, K, width, height, mode=mode, backend="cpu", pose_only=True)
+    ((out.color * grad_color).sum() + (out.depth * grad_depth).sum()).backward()
+    render = rasterize_pose_only(*scene, viewmat, K, width, height, mode=mode, backend="cpu")
+    for ours, theirs in ((render.color, out.color), (render.depth, out.depth), (render.alpha, out.alpha)):
+        assert torch.equal(ours, theirs.detach())
+    assert torch.equal(render.viewmat_gradient(grad_color, grad_depth), view.grad)
+
+
+def test_pose_only_render_without_autograd_declines_what_only_autograd_renders(ext):
+    width, height, focal = 16, 12, 14.0
+    viewmat, K = camera(width, height, focal)
+    scene = mixed_scene(10, width, height, focal, seed=14)
+    assert rasterize_pose_only(*scene, viewmat, K, width, height, backend="torch") is None
+    assert rasterize_pose_only(*scene, viewmat, K.clone().requires_grad_(True), width, height) is None
+    assert rasterize_pose_only(*(t.double() for t in scene), viewmat.double(), K.double(), width, height) is None
+    assert rasterize_pose_only(*scene, viewmat, K, width, height, backend="cpu") is not None
 
 
 # --- numerical extremes: tests/test_render_extremes.py runs them on every backend ------------------

@@ -14,6 +14,7 @@ from mipslam.geometry import se3_exp, se3_inverse, se3_log
 from mipslam.geometry.direct import DirectResult
 from mipslam.pipeline import run_slam
 from mipslam.rendering import frustum_subset, render_view
+import mipslam.rendering as rendering_module
 import mipslam.tracking as tracking
 from mipslam.state import FrameRecord, SLAMState
 from mipslam.tracking import Tracker, TrackingResult, constant_velocity_prediction, relocalise
@@ -169,13 +170,18 @@ def test_coarse_levels_render_in_the_coarse_mode_and_the_finest_in_the_tracking_
     tracker = Tracker(settings, config.render)
     assert [level.render_mode for level in tracker._levels(sequence[0])] == ["mip", "eaa"]
     rendered = []
-    real_render = tracking.render_view
 
-    def recording(gaussians, T_cw, intrinsics, render_config, **kwargs):
-        rendered.append((intrinsics.width, kwargs["mode"]))
-        return real_render(gaussians, T_cw, intrinsics, render_config, **kwargs)
+    def recording(real_render):
+        def render(gaussians, T_cw, intrinsics, render_config, **kwargs):
+            out = real_render(gaussians, T_cw, intrinsics, render_config, **kwargs)
+            if out is not None:  # render_view_pose_only declines where only autograd renders
+                rendered.append((intrinsics.width, kwargs["mode"]))
+            return out
+        return render
 
-    monkeypatch.setattr(tracking, "render_view", recording)
+    # the gradient steps render through render_view_pose_only on the compiled backend, else render_view
+    monkeypatch.setattr(tracking, "render_view", recording(tracking.render_view))
+    monkeypatch.setattr(tracking, "render_view_pose_only", recording(tracking.render_view_pose_only))
     tracker.track(gaussians, sequence[0], sequence.gt_T_wc[0], running_loss=None)
     width = sequence[0].intrinsics.width
     assert rendered == [(width // 2, "mip")] * 3 + [(width, "eaa")] * 3
@@ -345,6 +351,28 @@ def test_the_direct_alignment_reuses_the_start_judges_render_of_the_chosen_start
     # the same pose, bit for bit, with one render fewer
     assert torch.equal(reused.T_wc, fresh.T_wc) and reused.loss == fresh.loss
     assert after_judge - 2 == len(renders) - after_judge - 1
+
+
+@pytest.mark.parametrize("exposure,optimizer", [(True, "rprop"), (False, "adam")])
+def test_compiled_steps_track_bit_equal_to_autograd(one_frame_map, monkeypatch, exposure, optimizer):
+    """The compiled backend's gradient steps carry the chain rule by hand (Tracker._step_render); autograd
+    through render_view and rgbd_l1_loss is the reference: the same pose, loss and steps, bit for bit."""
+    if rendering_module.render_view_pose_only(one_frame_map[3], torch.eye(4), one_frame_map[2][0].intrinsics,
+                                              one_frame_map[1].render) is None:
+        pytest.skip("the compiled CPU backend is not built here")
+    seq, config, sequence, gaussians = one_frame_map
+    frame = sequence[0]
+    perturbation = se3_exp(torch.tensor([0.01, -0.008, 0.006, 0.008, -0.01, 0.004], dtype=torch.float64))
+    T_wc_init = sequence.gt_T_wc[0] @ perturbation
+    settings = tiny_config(seq, "tracking.iterations=12", f"tracking.use_exposure={str(exposure).lower()}",
+                           *_OPTIMIZERS[optimizer]).tracking
+    compiled = Tracker(settings, config.render).track(gaussians, frame, T_wc_init, running_loss=None)
+    monkeypatch.setattr(tracking, "render_view_pose_only", lambda *args, **kwargs: None)
+    reference = Tracker(settings, config.render).track(gaussians, frame, T_wc_init, running_loss=None)
+    assert compiled.ok and reference.ok and compiled.iterations == reference.iterations
+    assert torch.equal(compiled.T_wc, reference.T_wc) and compiled.loss == reference.loss
+    assert torch.equal(compiled.exposure, reference.exposure)
+    assert not torch.equal(compiled.T_wc, T_wc_init)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

@@ -12,6 +12,7 @@ from mipslam.geometry.se3 import (
     se3_compose,
     se3_exp,
     se3_exp_times,
+    se3_exp_times_vjp,
     se3_from_rt,
     se3_inverse,
     se3_log,
@@ -23,7 +24,8 @@ from mipslam.geometry.se3 import (
 from mipslam.geometry.resample import resize_area
 
 __all__ = [
-    "hat", "vee", "so3_exp", "so3_log", "se3_exp", "se3_exp_times", "se3_log", "se3_inverse", "se3_compose", "se3_from_rt",
+    "hat", "vee", "so3_exp", "so3_log", "se3_exp", "se3_exp_times", "se3_exp_times_vjp", "se3_log", "se3_inverse",
+    "se3_compose", "se3_from_rt",
     "quat_wxyz_to_rotmat", "rotmat_to_quat_wxyz", "quat_xyzw_to_wxyz", "quat_wxyz_to_xyzw",
     "transform_points", "rigidity_error", "rotation_angle", "nearest_rigid",
     "pixel_grid", "project", "sampling_rate", "unproject", "unproject_depth", "resize_area",

@@ -12,6 +12,7 @@ References: Barfoot, "State Estimation for Robotics" (2017), sections 7.1-7.2; S
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import numpy as np
 import torch
@@ -237,40 +238,51 @@ def _hat_np(v) -> np.ndarray:
 _HAT_BASIS = tuple(_hat_np(e) for e in np.eye(3))  # hat(e_k), k = 0, 1, 2
 
 
+def _left_increment(rho: torch.Tensor, phi: torch.Tensor, T: torch.Tensor) -> tuple[np.ndarray, tuple]:
+    """``exp([rho, phi]) T`` in float64 numpy and the parts its derivative needs (:func:`_left_increment_vjp`)."""
+    rho64 = rho.detach().to(device="cpu", dtype=torch.float64).numpy()
+    phi64 = phi.detach().to(device="cpu", dtype=torch.float64).numpy()
+    a, b, c, da, db, dc = _rodrigues_parts(phi64)
+    K = _hat_np(phi64)
+    K2 = K @ K
+    eye = np.eye(3)
+    R = eye + a * K + b * K2
+    V = eye + b * K + c * K2
+    increment = np.eye(4)
+    increment[:3, :3], increment[:3, 3] = R, V @ rho64
+    T64 = T.detach().to(device="cpu", dtype=torch.float64).numpy()
+    return increment @ T64, (rho64, phi64, T64, K, K2, V, a, b, c, da, db, dc)
+
+
+def _left_increment_vjp(parts: tuple, grad: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """dL/drho [3], dL/dphi [3] (float64) from dL/d(exp([rho, phi]) T) ``grad`` [4, 4]."""
+    rho64, phi64, T64, K, K2, V, a, b, c, da, db, dc = parts
+    G = grad.detach().to(device="cpu", dtype=torch.float64).numpy() @ T64.T  # dL/d(increment) [4, 4]
+    G_R, G_t = G[:3, :3], G[:3, 3]
+    H = np.outer(G_t, rho64)  # t = V rho: dL/dV
+    grad_rho = V.T @ G_t
+    # dR = dA K + A dK + dB K^2 + B (dK K + K dK), dV = dB K + B dK + dC K^2 + C (dK K + K dK);
+    # dA = A'(s) 2 phi_k, dK = hat(e_k)
+    radial = 2.0 * (da * np.sum(G_R * K) + db * np.sum(G_R * K2) + db * np.sum(H * K) + dc * np.sum(H * K2))
+    linear, quadratic = a * G_R + b * H, b * G_R + c * H
+    grad_phi = np.array([radial * phi64[k] + np.sum(linear * E) + np.sum(quadratic * (E @ K + K @ E))
+                         for k, E in enumerate(_HAT_BASIS)])
+    return grad_rho, grad_phi
+
+
 class _LeftIncrement(torch.autograd.Function):
     """``exp([rho, phi]) T`` with the derivative of the Rodrigues formulas written out (see
     :func:`se3_exp_times`)."""
 
     @staticmethod
     def forward(ctx, rho, phi, T, dtype):
-        rho64 = rho.detach().to(device="cpu", dtype=torch.float64).numpy()
-        phi64 = phi.detach().to(device="cpu", dtype=torch.float64).numpy()
-        a, b, c, da, db, dc = _rodrigues_parts(phi64)
-        K = _hat_np(phi64)
-        K2 = K @ K
-        eye = np.eye(3)
-        R = eye + a * K + b * K2
-        V = eye + b * K + c * K2
-        increment = np.eye(4)
-        increment[:3, :3], increment[:3, 3] = R, V @ rho64
-        T64 = T.detach().to(device="cpu", dtype=torch.float64).numpy()
-        ctx.parts = (rho64, phi64, T64, K, K2, V, a, b, c, da, db, dc)
+        product, ctx.parts = _left_increment(rho, phi, T)
         ctx.input_dtypes = (rho.dtype, phi.dtype)
-        return torch.from_numpy(increment @ T64).to(device=T.device, dtype=dtype)
+        return torch.from_numpy(product).to(device=T.device, dtype=dtype)
 
     @staticmethod
     def backward(ctx, grad):
-        rho64, phi64, T64, K, K2, V, a, b, c, da, db, dc = ctx.parts
-        G = grad.detach().to(device="cpu", dtype=torch.float64).numpy() @ T64.T  # dL/d(increment) [4, 4]
-        G_R, G_t = G[:3, :3], G[:3, 3]
-        H = np.outer(G_t, rho64)  # t = V rho: dL/dV
-        grad_rho = V.T @ G_t
-        # dR = dA K + A dK + dB K^2 + B (dK K + K dK), dV = dB K + B dK + dC K^2 + C (dK K + K dK);
-        # dA = A'(s) 2 phi_k, dK = hat(e_k)
-        radial = 2.0 * (da * np.sum(G_R * K) + db * np.sum(G_R * K2) + db * np.sum(H * K) + dc * np.sum(H * K2))
-        linear, quadratic = a * G_R + b * H, b * G_R + c * H
-        grad_phi = np.array([radial * phi64[k] + np.sum(linear * E) + np.sum(quadratic * (E @ K + K @ E))
-                             for k, E in enumerate(_HAT_BASIS)])
+        grad_rho, grad_phi = _left_increment_vjp(ctx.parts, grad)
         device = grad.device
         return (torch.from_numpy(grad_rho).to(device=device, dtype=ctx.input_dtypes[0]),
                 torch.from_numpy(grad_phi).to(device=device, dtype=ctx.input_dtypes[1]), None, None)
@@ -291,3 +303,25 @@ def se3_exp_times(rho: torch.Tensor, phi: torch.Tensor, T: torch.Tensor, dtype: 
         raise ValueError(f"se3_exp_times: rho [3], phi [3] and T [4, 4] expected, got {tuple(rho.shape)}, "
                          f"{tuple(phi.shape)} and {tuple(T.shape)}")
     return _LeftIncrement.apply(rho, phi, T, dtype)
+
+
+def se3_exp_times_vjp(rho: torch.Tensor, phi: torch.Tensor, T: torch.Tensor, dtype: torch.dtype
+                      ) -> tuple[torch.Tensor, Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]]:
+    """:func:`se3_exp_times` without autograd: the pose and its vector-Jacobian product, for a caller that
+    carries the chain rule itself (tracking's compiled step). The same values and gradients, bit for bit.
+
+    rho [3], phi [3], T [4, 4] -> (``(se3_exp([rho, phi]) @ T).to(dtype)`` [4, 4] on T's device, ``vjp``: dL/dpose
+    [4, 4] -> (dL/drho [3], dL/dphi [3]) in rho's and phi's dtypes and on the gradient's device).
+    """
+    if rho.shape != (3,) or phi.shape != (3,) or T.shape != (4, 4):
+        raise ValueError(f"se3_exp_times_vjp: rho [3], phi [3] and T [4, 4] expected, got {tuple(rho.shape)}, "
+                         f"{tuple(phi.shape)} and {tuple(T.shape)}")
+    product, parts = _left_increment(rho, phi, T)
+    dtypes = (rho.dtype, phi.dtype)
+
+    def vjp(grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        grad_rho, grad_phi = _left_increment_vjp(parts, grad)
+        return (torch.from_numpy(grad_rho).to(device=grad.device, dtype=dtypes[0]),
+                torch.from_numpy(grad_phi).to(device=grad.device, dtype=dtypes[1]))
+
+    return torch.from_numpy(product).to(device=T.device, dtype=dtype), vjp

@@ -266,6 +266,109 @@ class _MaskedMeanAbs(torch.autograd.Function):
         return (grad if ctx.needs_input_grad[0] else None, -grad if ctx.needs_input_grad[1] else None, None, None)
 
 
+@dataclass(frozen=True)
+class RGBDLossGradients:
+    """Gradients of :func:`rgbd_l1_loss`'s total, from :func:`rgbd_l1_loss_and_gradients`.
+
+    color:    [H, W, C] dL/d(rendered colour, before the exposure model)
+    depth:    [H, W]    dL/d(rendered depth), 1/metre
+    log_gain: []        dL/d(exposure log-gain), None without the exposure model
+    bias:     []        dL/d(exposure bias), None without the exposure model
+    """
+
+    color: torch.Tensor
+    depth: torch.Tensor
+    log_gain: torch.Tensor | None = None
+    bias: torch.Tensor | None = None
+
+
+@torch.no_grad()
+def rgbd_l1_loss_and_gradients(
+    color: torch.Tensor,  # [H, W, C] rendered colour in [0, 1]
+    depth: torch.Tensor,  # [H, W] rendered depth, metres
+    color_gt: torch.Tensor,  # [H, W, C] observed colour in [0, 1]
+    depth_gt: torch.Tensor,  # [H, W] observed depth, metres, 0 = none
+    *,
+    alpha_color: float,
+    masks: RGBDMasks,
+    exposure: tuple[torch.Tensor, torch.Tensor] | None = None,  # ([] log_gain, [] bias) of apply_affine_exposure
+    depth_alpha: torch.Tensor | None = None,  # [H, W] rendered opacity (see rgbd_l1_loss)
+    depth_alpha_floor: float = DEFAULT_DEPTH_ALPHA_FLOOR,
+    depth_outlier_ratio: float = 0.0,
+) -> tuple[RGBDLoss, RGBDLossGradients]:
+    """:func:`rgbd_l1_loss` (with precomputed ``masks`` and :func:`apply_affine_exposure`'s scalar model) and
+    its gradients, without autograd: for a caller that carries the chain rule itself (tracking's compiled
+    step, which skips autograd's graph and engine on every step).
+
+    The value and every gradient are those autograd gives for the same expression, bit for bit: the same
+    tensor operations in the same order (the L1 terms' ``sign(r) * w / n``, the exposure's broadcast sums as
+    autograd's ``sum_to_size``); tests/test_losses.py compares them with ``torch.equal``.
+    """
+    if not 0.0 <= alpha_color <= 1.0:
+        raise ValueError(f"alpha_color must be in [0, 1], got {alpha_color}")
+    if color.shape != color_gt.shape or depth.shape != depth_gt.shape:
+        raise ValueError(
+            f"rgbd_l1_loss_and_gradients: rendered colour {tuple(color.shape)} / depth {tuple(depth.shape)} do not "
+            f"match the observed {tuple(color_gt.shape)} / {tuple(depth_gt.shape)}"
+        )
+    gain = None
+    if exposure is not None:
+        log_gain, bias = exposure
+        if log_gain.dim() != 0 or bias.dim() != 0:
+            raise ValueError("rgbd_l1_loss_and_gradients: a scalar exposure model (log_gain [] and bias []) only")
+        gain = torch.exp(log_gain)
+        corrected = gain * color + bias
+    else:
+        corrected = color
+    color_residual, color_norm, num_color = _masked_residual(corrected, color_gt, masks.color)
+    alpha_clamped = None
+    if depth_alpha is not None:
+        if depth_alpha.shape != depth.shape:
+            raise ValueError(f"normalised_depth: depth {tuple(depth.shape)} and opacity {tuple(depth_alpha.shape)} "
+                             "differ")
+        if not 0.0 < depth_alpha_floor <= 1.0:
+            raise ValueError(f"normalised_depth: floor must be in (0, 1], got {depth_alpha_floor}")
+        alpha_clamped = depth_alpha.clamp(min=depth_alpha_floor)
+        depth = depth / alpha_clamped
+    depth_mask = masks.depth
+    if depth_outlier_ratio > 0:
+        depth_mask = depth_inlier_mask(depth, depth_gt, depth_mask, depth_outlier_ratio)
+    depth_residual, depth_norm, num_depth = _masked_residual(depth, depth_gt, depth_mask)
+    color_term = color_residual.abs().sum() / color_norm
+    depth_term = depth_residual.abs().sum() / depth_norm
+    total = alpha_color * color_term + (1.0 - alpha_color) * depth_term
+    loss = RGBDLoss(total=total, color=color_term, depth=depth_term, num_color_pixels=num_color,
+                    num_depth_pixels=num_depth)
+
+    # The chain rule as autograd runs it: d total / d term = 1 * weight, then _MaskedMeanAbs.backward.
+    one = torch.ones_like(total)
+    grad_corrected = color_residual.sign().mul_((one * alpha_color) / color_norm)
+    grad_depth = depth_residual.sign().mul_((one * (1.0 - alpha_color)) / depth_norm)
+    if alpha_clamped is not None:
+        grad_depth = grad_depth / alpha_clamped
+    if gain is None:
+        return loss, RGBDLossGradients(color=grad_corrected, depth=grad_depth)
+    grad_gain = (grad_corrected * color).sum_to_size(())
+    gradients = RGBDLossGradients(color=grad_corrected * gain, depth=grad_depth, log_gain=grad_gain * gain,
+                                  bias=grad_corrected.sum_to_size(()))
+    return loss, gradients
+
+
+def _masked_residual(prediction: torch.Tensor, target: torch.Tensor, mask: torch.Tensor
+                     ) -> tuple[torch.Tensor, float, int]:
+    """:func:`masked_l1`'s residual ``where(mask, prediction - target, 0)``, its normaliser (pixels x channels,
+    at least one pixel) and the pixel count."""
+    if prediction.shape != target.shape:
+        raise ValueError(f"masked_l1: prediction {tuple(prediction.shape)} and target {tuple(target.shape)} differ")
+    if mask.shape != prediction.shape[:2]:
+        raise ValueError(f"masked_l1: mask {tuple(mask.shape)} must be the [H, W] of {tuple(prediction.shape)}")
+    channels = prediction.shape[2] if prediction.dim() == 3 else 1
+    mask = mask.to(torch.bool)
+    count = int(mask.sum())
+    residual = torch.where(mask if prediction.dim() == 2 else mask[..., None], prediction - target, 0.0)
+    return residual, float(max(count, 1) * channels), count
+
+
 def normalised_depth(
     depth: torch.Tensor,  # [H, W] rendered depth sum_i T_i a_i z_i, metres
     alpha: torch.Tensor,  # [H, W] rendered opacity sum_i T_i a_i in [0, 1]

@@ -24,8 +24,9 @@ from mipslam.render.footprint import EXACT_K_SIGMA, MODE_DILATION, MODES
 from mipslam.render.projection import ProjectedGaussians, project_gaussians
 from mipslam.render.rasterize_torch import FootprintSettings, rasterize_projected
 
-__all__ = ["rasterize", "render", "RenderOptions", "render_option_problems", "RenderOutput", "Camera", "MODES", "BACKENDS",
-           "available_backends", "direct_aligner", "compiled_library", "project_gaussians", "ProjectedGaussians"]
+__all__ = ["rasterize", "rasterize_pose_only", "render", "RenderOptions", "render_option_problems", "RenderOutput",
+           "Camera", "MODES", "BACKENDS", "available_backends", "direct_aligner", "compiled_library", "project_gaussians",
+           "ProjectedGaussians"]
 
 log = logging.getLogger(__name__)
 
@@ -264,6 +265,34 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
         raise BackendUnavailableError(f"rasterize: the 'cpu' backend needs CPU tensors, got {means.device}")
     _check_camera_values(viewmat, K)
     return rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width, height, mode, opts)
+
+
+def rasterize_pose_only(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+                        colors: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
+                        mode: str = "eaa", backend: str = "auto", **options):
+    """A pose-only render whose backward to ``viewmat`` is written out, for a caller that carries the chain rule
+    itself (tracking's step): :class:`mipslam.render.cpu.PoseOnlyRender` (``color``, ``depth``, ``alpha`` and
+    ``viewmat_gradient(grad_color, grad_depth)``), the images and gradient :func:`rasterize` with ``pose_only``
+    and autograd give, bit for bit. None where the compiled CPU backend cannot take the call (``backend`` torch,
+    tensors off the CPU, a mode or option it lacks, a K or sampling rate that needs a gradient): render with
+    :func:`rasterize` and autograd there. Arguments as :func:`rasterize`; ``pose_only`` is implied."""
+    if mode not in MODES:
+        raise RenderError(f"rasterize_pose_only: unknown mode '{mode}'; choose one of {', '.join(MODES)}")
+    if backend not in BACKENDS:
+        raise RenderError(f"rasterize_pose_only: unknown backend '{backend}'; choose one of {', '.join(BACKENDS)}")
+    if backend == "torch" or means.device.type != "cpu" or K.requires_grad:
+        return None
+    cpu = _cpu_backend_module()
+    if cpu is None:
+        return None
+    opts = RenderOptions(**{**options, "pose_only": True})
+    rate = opts.max_sampling_rate
+    if cpu.unsupported_reason(means, colors, mode, opts) is not None or (rate is not None and (
+            rate.requires_grad or rate.dtype != means.dtype or tuple(rate.shape) != (means.shape[0],))):
+        return None
+    _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height)
+    return cpu.rasterize_pose_only(means, quats, scales, opacities, colors, viewmat, K, int(width), int(height),
+                                   mode=mode, options=opts)
 
 
 def rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, mode: str,

@@ -47,6 +47,14 @@ def _params_for(mode: str, options) -> tuple[float, ...]:
                               float(options.eaa_gamma), float(options.eaa_single_node_sigma))
 
 
+def _opacity_has_pose_gradient(params: tuple[float, ...]) -> bool:
+    """Whether the mode's opacity depends on the geometry (an energy factor: mip, ewa, EAA's single node; or the
+    3D filter), so that a geometry or viewmat gradient flows through it as well."""
+    return (params[_PROJECTION_PARAM_NAMES.index("energy")] != 0.0
+            or params[_PROJECTION_PARAM_NAMES.index("eaa")] != 0.0
+            or params[_PROJECTION_PARAM_NAMES.index("filter_scale")] != 0.0)
+
+
 class ProjectFootprints(torch.autograd.Function):
     """Fused projection + footprint parameters + EAA node counts + radii (projection.h), with a hand-written
     backward to means, quats, scales, opacities and the viewmat (K and the sampling rate are constants).
@@ -71,10 +79,7 @@ class ProjectFootprints(torch.autograd.Function):
         # node) or the 3D filter; without them and without an opacity gradient it is a constant, so the
         # rasterizer skips its opacity sums.
         needs = ctx.needs_input_grad
-        geometric = params[_PROJECTION_PARAM_NAMES.index("energy")] != 0.0 \
-            or params[_PROJECTION_PARAM_NAMES.index("eaa")] != 0.0 \
-            or params[_PROJECTION_PARAM_NAMES.index("filter_scale")] != 0.0
-        if not (needs[3] or (geometric and (any(needs[:3]) or needs[4]))):
+        if not (needs[3] or (_opacity_has_pose_gradient(params) and (any(needs[:3]) or needs[4]))):
             ctx.mark_non_differentiable(opacity)
         return means2d, depths, cov, opacity, node_counts, visible, radii, n_visible
 

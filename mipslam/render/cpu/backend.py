@@ -13,7 +13,7 @@ from mipslam.geometry import direct as direct_reference
 from mipslam.geometry.se3 import _SERIES_ANGLE_SQ
 from mipslam.render import footprint, projection
 from mipslam.render.cpu.autograd import (ProjectFootprints, RasterizeProjected, _gauss_legendre_f32,
-                                         _params_for)
+                                         _opacity_has_pose_gradient, _params_for)
 from mipslam.render.cpu.library import load_extension
 
 #: Footprint kernels of the library: point/mip/ewa are all a centre sample of the mode's covariance.
@@ -187,6 +187,66 @@ def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, h
     return RenderOutput(color=color, depth=depth, alpha=alpha, depth_normalized=depth_normalized, means2d=means2d,
                         radii=radii, visible=visible, n_visible=n_visible, depths=depths, mode=mode,
                         backend="cpu")
+
+
+@dataclasses.dataclass(frozen=True)
+class PoseOnlyRender:
+    """A pose-only render on the compiled backend with its backward to the viewmat written out (no autograd):
+    :func:`rasterize_pose_only`'s result.
+
+    color [H, W, C], depth [H, W] (the composited sum(T a z), metres), alpha [H, W]: the images of
+    :func:`rasterize` with ``pose_only``, bit for bit; :meth:`viewmat_gradient` gives what autograd's backward
+    through that render would give the viewmat.
+    """
+
+    color: torch.Tensor
+    depth: torch.Tensor
+    alpha: torch.Tensor
+    _saved: tuple = dataclasses.field(repr=False)
+
+    def viewmat_gradient(self, grad_color: torch.Tensor, grad_depth: torch.Tensor) -> torch.Tensor:
+        """dL/dviewmat [4, 4] (the viewmat's dtype) from dL/dcolor [H, W, C] and dL/ddepth [H, W]; the opacity
+        image carries no gradient. The library calls of :class:`RasterizeProjected` and
+        :class:`ProjectFootprints`' backwards with the flags a pose-only render sets."""
+        (ext, projection_inputs, width, height, params, threads, opacity_differentiable, raster_inputs,
+         raster_settings, raster_state, visible) = self._saved
+        g_means2d, g_cov, g_opacity, g_depths, _ = ext.rasterize_backward(
+            *raster_inputs, *raster_settings, *raster_state, self.color, self.depth, self.alpha,
+            grad_color.contiguous().to(torch.float32), grad_depth.contiguous().to(torch.float32),
+            torch.zeros_like(self.alpha), False, opacity_differentiable, threads)
+        return ext.project_backward(
+            *projection_inputs, width, height, params, visible, g_means2d, g_depths, g_cov,
+            g_opacity if opacity_differentiable else None, False, True, threads)[4]
+
+
+def rasterize_pose_only(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, *, mode: str,
+                        options) -> PoseOnlyRender:
+    """:func:`rasterize` with ``options.pose_only`` (tracking's render: gradients for the viewmat alone) without
+    autograd: the same library calls, so the same images, and a backward that skips autograd's graph and engine
+    (:meth:`PoseOnlyRender.viewmat_gradient`). Inputs as :func:`rasterize` (checked by
+    :func:`mipslam.render.rasterize_pose_only`); K and ``options.max_sampling_rate`` must need no gradient."""
+    reason = unsupported_reason(means, colors, mode, options)
+    if reason is not None:
+        raise BackendUnavailableError(f"rasterize_pose_only: {reason}")
+    if not _fused_projection_applies(means, K, options):
+        raise BackendUnavailableError("rasterize_pose_only: K and the 3D filter's sampling rate must be constants "
+                                      "(no gradient, the means' dtype and device)")
+    ext = load_extension()
+    means, quats, scales, opacities, colors, viewmat = (
+        t.detach() for t in (means, quats, scales, opacities, colors, viewmat))
+    threads = torch.get_num_threads()
+    params = _params_for(mode, options)
+    projection_inputs = (means, quats, scales, opacities, colors, viewmat, K, options.max_sampling_rate)
+    means2d, depths, cov, opacity, node_counts, visible, _radii, _n_visible = ext.project_forward(
+        *projection_inputs, width, height, params, threads)
+    gl_nodes, gl_weights = _gauss_legendre_f32(options.exact_order if mode == "exact" else 1)
+    raster_inputs = (means2d, cov, opacity, depths, colors.contiguous(), node_counts)
+    raster_settings = (MODE_IDS[mode], width, height, float(options.k_sigma), float(options.eaa_eta),
+                       float(options.eaa_tau), gl_nodes, gl_weights)
+    color, depth, alpha, *raster_state, _stats = ext.rasterize_forward(*raster_inputs, *raster_settings, threads)
+    saved = (ext, projection_inputs, width, height, params, threads, _opacity_has_pose_gradient(params),
+             raster_inputs, raster_settings, tuple(raster_state), visible)
+    return PoseOnlyRender(color=color, depth=depth, alpha=alpha, _saved=saved)
 
 
 def rasterize_unfused(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, *, mode: str,
