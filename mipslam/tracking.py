@@ -307,13 +307,9 @@ class Tracker:
             T_cw = se3_exp_times(rho, phi, T_cw_init, dtype)
             loss, alpha = self._loss(gaussians, T_cw, level, exposure)
             return _StepRender(loss, alpha, loss.total.backward)
-        cfg = self.config
-        masks = level.target_masks.where_opaque(render.alpha, cfg.opacity_threshold)
         affine = None if exposure is None else tuple(exposure.detach().unbind())
-        loss, gradients = rgbd_l1_loss_and_gradients(
-            render.color, render.depth, level.color, level.depth, alpha_color=cfg.alpha_color, masks=masks,
-            exposure=affine, depth_alpha=render.alpha if cfg.depth_normalise else None,
-            depth_alpha_floor=cfg.depth_alpha_floor, depth_outlier_ratio=cfg.depth_outlier_ratio)
+        loss, gradients = rgbd_l1_loss_and_gradients(render.color, render.depth, level.color, level.depth,
+                                                     exposure=affine, **self._loss_terms(render.alpha, level))
 
         def backward() -> None:
             rho.grad, phi.grad = pose_vjp(render.viewmat_gradient(gradients.color, gradients.depth))
@@ -330,13 +326,16 @@ class Tracker:
 
     def _loss_of_render(self, out: RenderOutput, level: _Level, exposure: torch.Tensor | None):
         """The tracking loss of the render ``out`` against ``level``."""
-        masks = level.target_masks.where_opaque(out.alpha, self.config.opacity_threshold)
         color = out.color if exposure is None else apply_affine_exposure(out.color, exposure[0], exposure[1])
-        loss = rgbd_l1_loss(color, out.depth, level.color, level.depth, alpha_color=self.config.alpha_color,
-                            masks=masks, depth_alpha=out.alpha if self.config.depth_normalise else None,
-                            depth_alpha_floor=self.config.depth_alpha_floor,
-                            depth_outlier_ratio=self.config.depth_outlier_ratio)
-        return loss
+        return rgbd_l1_loss(color, out.depth, level.color, level.depth, **self._loss_terms(out.alpha, level))
+
+    def _loss_terms(self, alpha: torch.Tensor, level: _Level) -> dict:
+        """The tracking loss's keyword arguments for a render with opacity ``alpha`` [h, w] against ``level``: its
+        masks (the level's, where the render is opaque) and the tracking config's weights and depth options."""
+        cfg = self.config
+        return dict(alpha_color=cfg.alpha_color, masks=level.target_masks.where_opaque(alpha, cfg.opacity_threshold),
+                    depth_alpha=alpha if cfg.depth_normalise else None, depth_alpha_floor=cfg.depth_alpha_floor,
+                    depth_outlier_ratio=cfg.depth_outlier_ratio)
 
     def track(
         self,

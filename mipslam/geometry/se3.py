@@ -254,8 +254,10 @@ def _left_increment(rho: torch.Tensor, phi: torch.Tensor, T: torch.Tensor) -> tu
     return increment @ T64, (rho64, phi64, T64, K, K2, V, a, b, c, da, db, dc)
 
 
-def _left_increment_vjp(parts: tuple, grad: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
-    """dL/drho [3], dL/dphi [3] (float64) from dL/d(exp([rho, phi]) T) ``grad`` [4, 4]."""
+def _left_increment_vjp(parts: tuple, grad: torch.Tensor, dtypes: tuple[torch.dtype, torch.dtype]
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    """dL/drho [3], dL/dphi [3] (in ``dtypes``, on the gradient's device) from dL/d(exp([rho, phi]) T) ``grad``
+    [4, 4]."""
     rho64, phi64, T64, K, K2, V, a, b, c, da, db, dc = parts
     G = grad.detach().to(device="cpu", dtype=torch.float64).numpy() @ T64.T  # dL/d(increment) [4, 4]
     G_R, G_t = G[:3, :3], G[:3, 3]
@@ -267,7 +269,8 @@ def _left_increment_vjp(parts: tuple, grad: torch.Tensor) -> tuple[np.ndarray, n
     linear, quadratic = a * G_R + b * H, b * G_R + c * H
     grad_phi = np.array([radial * phi64[k] + np.sum(linear * E) + np.sum(quadratic * (E @ K + K @ E))
                          for k, E in enumerate(_HAT_BASIS)])
-    return grad_rho, grad_phi
+    return (torch.from_numpy(grad_rho).to(device=grad.device, dtype=dtypes[0]),
+            torch.from_numpy(grad_phi).to(device=grad.device, dtype=dtypes[1]))
 
 
 class _LeftIncrement(torch.autograd.Function):
@@ -282,10 +285,7 @@ class _LeftIncrement(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):
-        grad_rho, grad_phi = _left_increment_vjp(ctx.parts, grad)
-        device = grad.device
-        return (torch.from_numpy(grad_rho).to(device=device, dtype=ctx.input_dtypes[0]),
-                torch.from_numpy(grad_phi).to(device=device, dtype=ctx.input_dtypes[1]), None, None)
+        return _left_increment_vjp(ctx.parts, grad, ctx.input_dtypes) + (None, None)
 
 
 def se3_exp_times(rho: torch.Tensor, phi: torch.Tensor, T: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
@@ -299,9 +299,7 @@ def se3_exp_times(rho: torch.Tensor, phi: torch.Tensor, T: torch.Tensor, dtype: 
     rho [3] metres, phi [3] radians (any float dtype; their gradients come back in it), T [4, 4] (no gradient)
     -> [4, 4] in ``dtype`` on T's device.
     """
-    if rho.shape != (3,) or phi.shape != (3,) or T.shape != (4, 4):
-        raise ValueError(f"se3_exp_times: rho [3], phi [3] and T [4, 4] expected, got {tuple(rho.shape)}, "
-                         f"{tuple(phi.shape)} and {tuple(T.shape)}")
+    _check_left_increment("se3_exp_times", rho, phi, T)
     return _LeftIncrement.apply(rho, phi, T, dtype)
 
 
@@ -313,15 +311,14 @@ def se3_exp_times_vjp(rho: torch.Tensor, phi: torch.Tensor, T: torch.Tensor, dty
     rho [3], phi [3], T [4, 4] -> (``(se3_exp([rho, phi]) @ T).to(dtype)`` [4, 4] on T's device, ``vjp``: dL/dpose
     [4, 4] -> (dL/drho [3], dL/dphi [3]) in rho's and phi's dtypes and on the gradient's device).
     """
-    if rho.shape != (3,) or phi.shape != (3,) or T.shape != (4, 4):
-        raise ValueError(f"se3_exp_times_vjp: rho [3], phi [3] and T [4, 4] expected, got {tuple(rho.shape)}, "
-                         f"{tuple(phi.shape)} and {tuple(T.shape)}")
+    _check_left_increment("se3_exp_times_vjp", rho, phi, T)
     product, parts = _left_increment(rho, phi, T)
     dtypes = (rho.dtype, phi.dtype)
+    return (torch.from_numpy(product).to(device=T.device, dtype=dtype),
+            lambda grad: _left_increment_vjp(parts, grad, dtypes))
 
-    def vjp(grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        grad_rho, grad_phi = _left_increment_vjp(parts, grad)
-        return (torch.from_numpy(grad_rho).to(device=grad.device, dtype=dtypes[0]),
-                torch.from_numpy(grad_phi).to(device=grad.device, dtype=dtypes[1]))
 
-    return torch.from_numpy(product).to(device=T.device, dtype=dtype), vjp
+def _check_left_increment(name: str, rho: torch.Tensor, phi: torch.Tensor, T: torch.Tensor) -> None:
+    if rho.shape != (3,) or phi.shape != (3,) or T.shape != (4, 4):
+        raise ValueError(f"{name}: rho [3], phi [3] and T [4, 4] expected, got {tuple(rho.shape)}, "
+                         f"{tuple(phi.shape)} and {tuple(T.shape)}")

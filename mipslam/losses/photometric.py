@@ -235,15 +235,22 @@ def masked_l1(
     neither reaches the value nor the gradient. An empty mask gives an exact zero that still depends on
     ``prediction`` (its gradient is zero), never a division by zero.
     """
+    pixel_mask, norm, count = _masked_pixels(prediction, target, mask)
+    return _MaskedMeanAbs.apply(prediction, target, pixel_mask, norm), count
+
+
+def _masked_pixels(prediction: torch.Tensor, target: torch.Tensor, mask: torch.Tensor
+                   ) -> tuple[torch.Tensor, float, int]:
+    """:func:`masked_l1`'s checks, then the mask broadcast to ``prediction`` ([H, W] or [H, W, 1] bool), the
+    normaliser (pixels x channels, at least one pixel) and the pixel count."""
     if prediction.shape != target.shape:
         raise ValueError(f"masked_l1: prediction {tuple(prediction.shape)} and target {tuple(target.shape)} differ")
     if mask.shape != prediction.shape[:2]:
         raise ValueError(f"masked_l1: mask {tuple(mask.shape)} must be the [H, W] of {tuple(prediction.shape)}")
     channels = prediction.shape[2] if prediction.dim() == 3 else 1
     mask = mask.to(torch.bool)
-    pixel_mask = mask if prediction.dim() == 2 else mask[..., None]
     count = int(mask.sum())
-    return _MaskedMeanAbs.apply(prediction, target, pixel_mask, float(max(count, 1) * channels)), count
+    return (mask if prediction.dim() == 2 else mask[..., None]), float(max(count, 1) * channels), count
 
 
 class _MaskedMeanAbs(torch.autograd.Function):
@@ -304,13 +311,7 @@ def rgbd_l1_loss_and_gradients(
     tensor operations in the same order (the L1 terms' ``sign(r) * w / n``, the exposure's broadcast sums as
     autograd's ``sum_to_size``); tests/test_losses.py compares them with ``torch.equal``.
     """
-    if not 0.0 <= alpha_color <= 1.0:
-        raise ValueError(f"alpha_color must be in [0, 1], got {alpha_color}")
-    if color.shape != color_gt.shape or depth.shape != depth_gt.shape:
-        raise ValueError(
-            f"rgbd_l1_loss_and_gradients: rendered colour {tuple(color.shape)} / depth {tuple(depth.shape)} do not "
-            f"match the observed {tuple(color_gt.shape)} / {tuple(depth_gt.shape)}"
-        )
+    _check_rgbd_loss_inputs("rgbd_l1_loss_and_gradients", color, depth, color_gt, depth_gt, alpha_color)
     gain = None
     if exposure is not None:
         log_gain, bias = exposure
@@ -323,12 +324,7 @@ def rgbd_l1_loss_and_gradients(
     color_residual, color_norm, num_color = _masked_residual(corrected, color_gt, masks.color)
     alpha_clamped = None
     if depth_alpha is not None:
-        if depth_alpha.shape != depth.shape:
-            raise ValueError(f"normalised_depth: depth {tuple(depth.shape)} and opacity {tuple(depth_alpha.shape)} "
-                             "differ")
-        if not 0.0 < depth_alpha_floor <= 1.0:
-            raise ValueError(f"normalised_depth: floor must be in (0, 1], got {depth_alpha_floor}")
-        alpha_clamped = depth_alpha.clamp(min=depth_alpha_floor)
+        alpha_clamped = _depth_divisor(depth, depth_alpha, depth_alpha_floor)
         depth = depth / alpha_clamped
     depth_mask = masks.depth
     if depth_outlier_ratio > 0:
@@ -356,17 +352,10 @@ def rgbd_l1_loss_and_gradients(
 
 def _masked_residual(prediction: torch.Tensor, target: torch.Tensor, mask: torch.Tensor
                      ) -> tuple[torch.Tensor, float, int]:
-    """:func:`masked_l1`'s residual ``where(mask, prediction - target, 0)``, its normaliser (pixels x channels,
-    at least one pixel) and the pixel count."""
-    if prediction.shape != target.shape:
-        raise ValueError(f"masked_l1: prediction {tuple(prediction.shape)} and target {tuple(target.shape)} differ")
-    if mask.shape != prediction.shape[:2]:
-        raise ValueError(f"masked_l1: mask {tuple(mask.shape)} must be the [H, W] of {tuple(prediction.shape)}")
-    channels = prediction.shape[2] if prediction.dim() == 3 else 1
-    mask = mask.to(torch.bool)
-    count = int(mask.sum())
-    residual = torch.where(mask if prediction.dim() == 2 else mask[..., None], prediction - target, 0.0)
-    return residual, float(max(count, 1) * channels), count
+    """:func:`masked_l1`'s residual ``where(mask, prediction - target, 0)``, its normaliser and the pixel count
+    (:func:`_masked_pixels`)."""
+    pixel_mask, norm, count = _masked_pixels(prediction, target, mask)
+    return torch.where(pixel_mask, prediction - target, 0.0), norm, count
 
 
 def normalised_depth(
@@ -379,11 +368,16 @@ def normalised_depth(
     Where ``A >= floor`` this is the depth of the surface whatever the opacity (a surface at ``z`` with
     ``A < 1`` renders ``D = A z``); the gradient flows through ``D`` alone (scaled by ``1 / A``).
     """
+    return depth / _depth_divisor(depth, alpha, floor)
+
+
+def _depth_divisor(depth: torch.Tensor, alpha: torch.Tensor, floor: float) -> torch.Tensor:
+    """:func:`normalised_depth`'s checks and divisor ``stopgrad(max(A, floor))`` [H, W]."""
     if depth.shape != alpha.shape:
         raise ValueError(f"normalised_depth: depth {tuple(depth.shape)} and opacity {tuple(alpha.shape)} differ")
     if not 0.0 < floor <= 1.0:
         raise ValueError(f"normalised_depth: floor must be in (0, 1], got {floor}")
-    return depth / alpha.detach().clamp(min=floor)
+    return alpha.detach().clamp(min=floor)
 
 
 def depth_inlier_mask(
@@ -414,6 +408,18 @@ def coverage_loss(
     return value
 
 
+def _check_rgbd_loss_inputs(name: str, color: torch.Tensor, depth: torch.Tensor, color_gt: torch.Tensor,
+                            depth_gt: torch.Tensor, alpha_color: float) -> None:
+    """The loss's argument checks, shared by :func:`rgbd_l1_loss` and :func:`rgbd_l1_loss_and_gradients`."""
+    if not 0.0 <= alpha_color <= 1.0:
+        raise ValueError(f"alpha_color must be in [0, 1], got {alpha_color}")
+    if color.shape != color_gt.shape or depth.shape != depth_gt.shape:
+        raise ValueError(
+            f"{name}: rendered colour {tuple(color.shape)} / depth {tuple(depth.shape)} do not match "
+            f"the observed {tuple(color_gt.shape)} / {tuple(depth_gt.shape)}"
+        )
+
+
 def rgbd_l1_loss(
     color: torch.Tensor,  # [H, W, C] rendered colour in [0, 1]
     depth: torch.Tensor,  # [H, W] rendered depth, metres
@@ -440,13 +446,7 @@ def rgbd_l1_loss(
     depth_alpha_floor))`` with the observed depth (module docstring); None compares the raw ``D``.
     ``depth_outlier_ratio`` > 0 drops depth pixels whose residual exceeds that many times the median residual.
     """
-    if not 0.0 <= alpha_color <= 1.0:
-        raise ValueError(f"alpha_color must be in [0, 1], got {alpha_color}")
-    if color.shape != color_gt.shape or depth.shape != depth_gt.shape:
-        raise ValueError(
-            f"rgbd_l1_loss: rendered colour {tuple(color.shape)} / depth {tuple(depth.shape)} do not match "
-            f"the observed {tuple(color_gt.shape)} / {tuple(depth_gt.shape)}"
-        )
+    _check_rgbd_loss_inputs("rgbd_l1_loss", color, depth, color_gt, depth_gt, alpha_color)
     if masks is None:
         masks = rgbd_masks(
             color_gt,

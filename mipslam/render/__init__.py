@@ -280,15 +280,11 @@ def rasterize_pose_only(means: torch.Tensor, quats: torch.Tensor, scales: torch.
         raise RenderError(f"rasterize_pose_only: unknown mode '{mode}'; choose one of {', '.join(MODES)}")
     if backend not in BACKENDS:
         raise RenderError(f"rasterize_pose_only: unknown backend '{backend}'; choose one of {', '.join(BACKENDS)}")
-    if backend == "torch" or means.device.type != "cpu" or K.requires_grad:
-        return None
-    cpu = _cpu_backend_module()
+    cpu = _cpu_backend_module() if backend != "torch" else None
     if cpu is None:
         return None
     opts = RenderOptions(**{**options, "pose_only": True})
-    rate = opts.max_sampling_rate
-    if cpu.unsupported_reason(means, colors, mode, opts) is not None or (rate is not None and (
-            rate.requires_grad or rate.dtype != means.dtype or tuple(rate.shape) != (means.shape[0],))):
+    if cpu.pose_only_unsupported_reason(means, colors, K, mode, opts) is not None:
         return None
     _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height)
     return cpu.rasterize_pose_only(means, quats, scales, opacities, colors, viewmat, K, int(width), int(height),

@@ -27,8 +27,8 @@ from __future__ import annotations
 
 from mipslam.render.cpu.autograd import ProjectFootprints, RasterizeProjected
 from mipslam.render.cpu.backend import (MAX_ROWS, MODE_IDS, SUPPORTED_CHANNELS, CpuImage, FootprintProjection,
-                                        PoseOnlyRender, align_direct, project_footprints, rasterize,
-                                        rasterize_pose_only, rasterize_projected, rasterize_unfused,
+                                        PoseOnlyRender, align_direct, pose_only_unsupported_reason,
+                                        project_footprints, rasterize, rasterize_pose_only, rasterize_projected, rasterize_unfused,
                                         reference_footprints, unsupported_reason)
 from mipslam.render.cpu.library import (KernelTimes, Library, is_available, load_extension, profile_kernels,
                                         unavailable_reason, warm_up)
@@ -37,4 +37,4 @@ __all__ = ["is_available", "unavailable_reason", "unsupported_reason", "load_ext
            "rasterize_unfused", "rasterize_projected", "RasterizeProjected", "ProjectFootprints",
            "project_footprints", "reference_footprints", "FootprintProjection", "CpuImage", "profile_kernels",
            "KernelTimes", "Library", "MODE_IDS", "SUPPORTED_CHANNELS", "MAX_ROWS", "align_direct",
-           "rasterize_pose_only", "PoseOnlyRender"]
+           "rasterize_pose_only", "pose_only_unsupported_reason", "PoseOnlyRender"]

@@ -219,18 +219,25 @@ class PoseOnlyRender:
             g_opacity if opacity_differentiable else None, False, True, threads)[4]
 
 
+def pose_only_unsupported_reason(means: torch.Tensor, colors: torch.Tensor, K: torch.Tensor, mode: str,
+                                 options) -> str | None:
+    """Why :func:`rasterize_pose_only` cannot take this call (None if it can): :func:`unsupported_reason`, or a K
+    or 3D-filter sampling rate that the fused projection cannot treat as a constant."""
+    reason = unsupported_reason(means, colors, mode, options)
+    if reason is None and not _fused_projection_applies(means, K, options):
+        reason = "K and the 3D filter's sampling rate must be constants (no gradient, the means' dtype and device)"
+    return reason
+
+
 def rasterize_pose_only(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, *, mode: str,
                         options) -> PoseOnlyRender:
     """:func:`rasterize` with ``options.pose_only`` (tracking's render: gradients for the viewmat alone) without
     autograd: the same library calls, so the same images, and a backward that skips autograd's graph and engine
     (:meth:`PoseOnlyRender.viewmat_gradient`). Inputs as :func:`rasterize` (checked by
     :func:`mipslam.render.rasterize_pose_only`); K and ``options.max_sampling_rate`` must need no gradient."""
-    reason = unsupported_reason(means, colors, mode, options)
+    reason = pose_only_unsupported_reason(means, colors, K, mode, options)
     if reason is not None:
         raise BackendUnavailableError(f"rasterize_pose_only: {reason}")
-    if not _fused_projection_applies(means, K, options):
-        raise BackendUnavailableError("rasterize_pose_only: K and the 3D filter's sampling rate must be constants "
-                                      "(no gradient, the means' dtype and device)")
     ext = load_extension()
     means, quats, scales, opacities, colors, viewmat = (
         t.detach() for t in (means, quats, scales, opacities, colors, viewmat))
