@@ -216,12 +216,15 @@ class TrackingConfig:
     running_loss_momentum: float = 0.9
     # Footprint mode of tracking's renders (null: render.mode); mapping always renders in render.mode. On a
     # 320x240 map EAA's row rule for sub-pixel splats made a pose-only render 3x as expensive as mip's, and
-    # mip tracking kept the ATE within the seed spread; at 160x120 it cost 0.2-0.3 cm (docs/bench.md).
-    # The balanced preset sets mip.
+    # mip tracking kept the ATE within the seed spread; at 160x120 it costs the lap 0.05-0.23 cm (docs/bench.md).
     render_mode: Literal["point", "mip", "ewa", "eaa", "exact"] | None = None
     # Footprint mode of the coarse levels (coarse_to_fine; null: render_mode). They only bring the pose into the
     # finest level's basin, and below ~1 px per splat EAA's renders cost as much as at twice the resolution.
     coarse_render_mode: Literal["point", "mip", "ewa", "eaa", "exact"] | None = None
+    # The first this many of the finest level's gradient steps render in coarse_render_mode when it differs
+    # from render_mode (0: none): the cheaper footprint brings the pose near, render_mode's steps finish and
+    # alone judge the best pose (docs/tracking.md, "Results").
+    coarse_mode_iterations: int = 0
     # Depth term on the alpha-normalised rendered depth D / max(A, depth_alpha_floor) instead of the raw
     # D = sum T a z, which reads short wherever the map's opacity A < 1 and so pulls the camera towards
     # the surface (mipslam/losses/photometric.py; docs/mapping.md).
@@ -272,6 +275,7 @@ class TrackingConfig:
         _check(self.relocalise_loss_ratio == 0 or self.relocalise_loss_ratio > 1, "tracking.relocalise_loss_ratio",
                "must be 0 (off) or > 1")
         _check(0 <= self.coarse_share < 1, "tracking.coarse_share", "must be in [0, 1)")
+        _check(self.coarse_mode_iterations >= 0, "tracking.coarse_mode_iterations", "must be >= 0 (0 = none)")
         _check(self.relocalise_max_m > 0 and self.relocalise_max_deg > 0, "tracking.relocalise_max_*",
                "must be positive (metres, degrees)")
         _check(0 <= self.running_loss_momentum < 1, "tracking.running_loss_momentum", "must be in [0, 1)")

@@ -196,7 +196,18 @@ class Tracker:
                                       extra_color_mask=image_gradient_mask(color, cfg.gradient_mask_percentile))
             mode = cfg.render_mode if scale == finest or cfg.coarse_render_mode is None else cfg.coarse_render_mode
             levels.append(_Level(intrinsics, color, depth, target_masks, iterations, mode))
-        return levels
+        return self._split_finest_by_mode(levels)
+
+    def _split_finest_by_mode(self, levels: list[_Level]) -> list[_Level]:
+        """``levels`` with the finest level's first ``tracking.coarse_mode_iterations`` steps (at most all but
+        one) as a level of their own in ``tracking.coarse_render_mode``: the same images, a cheaper footprint."""
+        cfg, finest = self.config, levels[-1]
+        finest_mode = finest.render_mode or self.render_config.mode
+        split = min(cfg.coarse_mode_iterations, finest.iterations - 1)
+        if split <= 0 or cfg.coarse_render_mode in (None, finest_mode):
+            return levels
+        return levels[:-1] + [replace(finest, iterations=split, render_mode=cfg.coarse_render_mode),
+                              replace(finest, iterations=finest.iterations - split)]
 
     def _direct_targets(self, frame: Frame) -> list[DirectTarget]:
         """The frame's pyramid for the direct alignment, coarse to fine, the finest at tracking's finest level

@@ -190,6 +190,33 @@ def test_coarse_levels_render_in_the_coarse_mode_and_the_finest_in_the_tracking_
     assert [level.render_mode for level in plain._levels(sequence[0])] == ["eaa", "eaa"]
 
 
+def test_the_first_steps_of_the_finest_level_render_in_the_coarse_mode(one_frame_map, monkeypatch):
+    _, config, sequence, gaussians = one_frame_map
+    settings = replace(config.tracking, iterations=6, coarse_to_fine=(), render_mode="eaa", coarse_render_mode="mip",
+                       coarse_mode_iterations=2, direct_iterations=0, convergence_threshold=0.0)
+    tracker = Tracker(settings, config.render)
+    levels = tracker._levels(sequence[0])
+    assert [(level.render_mode, level.iterations) for level in levels] == [("mip", 2), ("eaa", 4)]
+    assert levels[0].color is levels[1].color and levels[0].intrinsics == levels[1].intrinsics  # the same images
+    judged = []
+    real_covered = Tracker._covered_pixels
+
+    def covered(self, alpha, level):  # called for each new best pose: the coarse-mode steps never judge
+        judged.append(level.render_mode)
+        return real_covered(self, alpha, level)
+
+    monkeypatch.setattr(Tracker, "_covered_pixels", covered)
+    result = tracker.track(gaussians, sequence[0], sequence.gt_T_wc[0], running_loss=None)
+    assert result.ok and result.iterations == 6 and judged and set(judged) == {"eaa"}
+    # never all of the finest level's steps; nothing split without a different coarse mode
+    for kwargs, expected in [(dict(coarse_mode_iterations=9), [("mip", 5), ("eaa", 1)]),
+                             (dict(coarse_render_mode=None), [("eaa", 6)]),
+                             (dict(coarse_render_mode="eaa"), [("eaa", 6)]),
+                             (dict(coarse_mode_iterations=0), [("eaa", 6)])]:
+        split = Tracker(replace(settings, **kwargs), config.render)._levels(sequence[0])
+        assert [(level.render_mode, level.iterations) for level in split] == expected, kwargs
+
+
 def test_relocalisation_runs_above_the_loss_ratio_and_accepts_the_configured_jump(one_frame_map, monkeypatch):
     _, config, sequence, gaussians = one_frame_map
     frame = sequence[0]
