@@ -7,7 +7,8 @@ Adam or Rprop (``tracking.optimizer``) on the loss of DESIGN.md ("Losses", track
 where the masks keep valid depth, rendered opacity >= ``opacity_threshold`` (pixels the map explains)
 and, for colour, pixels above an image-gradient percentile. Optional coarse-to-fine: the first
 levels run at reduced resolution (area-averaged targets, intrinsics scaled with the pixel-centre rule),
-optionally in a cheaper footprint mode (``tracking.coarse_render_mode``).
+optionally in a cheaper footprint mode (``tracking.coarse_render_mode``), as may the first
+``tracking.coarse_mode_iterations`` steps at the finest resolution (the later steps alone judge the best pose).
 The renderer's pose-only backward is used (the map is frozen), on the Gaussians that can reach the
 view from the motion-model pose (:func:`~mipslam.rendering.frustum_indices`, ``render.frustum_margin``).
 With ``tracking.direct_iterations`` > 0 the gradient steps start where a direct RGB-D alignment
