@@ -389,7 +389,9 @@ class Tracker:
             xi_seen = se3_log(seen.T_cw @ se3_inverse(T_cw_init)).to(dtype)
             best = (xi_seen, None if exposure is None else torch.zeros_like(exposure.detach()))
         levels = self._levels(frame)
-        full = levels[-1]  # the finest level (tracking.resolution_scale) is last and gets at least half the iterations
+        # The finest level (tracking.resolution_scale) in render_mode is last; its steps alone judge the best pose
+        # (tracking.coarse_mode_iterations may have moved its first steps into a level of their own before it).
+        full = levels[-1]
         base_lrs = [group["lr"] for group in optimizer.param_groups]
         # Adam's rate decays geometrically within each level: lr_i = lr * ratio^(i / (n - 1)). Rprop reads lr
         # only to size its first steps and adapts them itself, so its rate is left alone.
