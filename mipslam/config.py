@@ -249,6 +249,10 @@ class TrackingConfig:
     # instant, and under fast turns the depth lags: 0.7-0.9 tracked fr1_rpy 2.36-2.67 cm, 0.5 2.87, 0.2 3.60,
     # while Replica, fr1_xyz and the data_synth lap moved by at most 0.03, 0.06, 0.24 cm over 0.5-0.9 (docs/tracking.md).
     direct_alpha_color: float = 0.8
+    # The alignment's depth residuals in units of z^p (0: metres), z the point's depth: an active sensor's depth
+    # noise grows as z^2 (Kinect, RealSense; configs/tum.yaml sets 2), so far pixels count less; its robust
+    # scale stays per frame. Noise-free renders (Replica, data_synth) keep metres (docs/tracking.md, "Depth noise").
+    direct_depth_noise_power: float = 0.0
 
     def __post_init__(self):
         _check(self.iterations >= 1, "tracking.iterations", "must be >= 1")
@@ -257,6 +261,7 @@ class TrackingConfig:
         _check(self.direct_renders >= 1, "tracking.direct_renders", "must be >= 1")
         _check(self.direct_convergence > 0, "tracking.direct_convergence", "must be > 0")
         _check(0 <= self.direct_alpha_color <= 1, "tracking.direct_alpha_color", "must be in [0, 1]")
+        _check(self.direct_depth_noise_power >= 0, "tracking.direct_depth_noise_power", "must be >= 0 (0 = metres)")
         _check(self.depth_outlier_ratio >= 0, "tracking.depth_outlier_ratio", "must be >= 0 (0 = off)")
         _check(0 < self.depth_alpha_floor <= 1, "tracking.depth_alpha_floor", "must be in (0, 1]")
         _check(self.max_depth >= 0, "tracking.max_depth", "must be >= 0 metres (0 = no limit)")

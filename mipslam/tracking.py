@@ -284,7 +284,8 @@ class Tracker:
             eye = torch.eye(4, dtype=torch.float64)
             align = direct_aligner(self.render_config.backend, out.color.device)
             result = align(references, targets, eye, iterations=cfg.direct_iterations,
-                           alpha_color=cfg.direct_alpha_color, convergence=cfg.direct_convergence)
+                           alpha_color=cfg.direct_alpha_color, convergence=cfg.direct_convergence,
+                           depth_noise_power=cfg.direct_depth_noise_power)
             steps += result.iterations
             if not result.ok:
                 return T_cw, best, steps

@@ -75,14 +75,15 @@ def align_direct(request):
 MOTION = torch.tensor([0.02, -0.012, 0.015, 0.012, -0.02, 0.01], dtype=torch.float64)  # 2.8 cm, 1.4 degrees
 
 
-@pytest.mark.parametrize("alpha_color", [0.5, 0.9])
-def test_direct_alignment_recovers_a_known_motion_to_a_fraction_of_a_millimetre(align_direct, alpha_color):
+@pytest.mark.parametrize("alpha_color, depth_noise_power", [(0.5, 0.0), (0.9, 0.0), (0.5, 2.0)])
+def test_direct_alignment_recovers_a_known_motion_to_a_fraction_of_a_millimetre(align_direct, alpha_color,
+                                                                                 depth_noise_power):
     T_ref = torch.eye(4, dtype=torch.float64)
     T_motion = se3_exp(MOTION)  # target camera from reference camera
     references, targets = _pyramids(T_ref, T_motion @ T_ref)
     start = _error(torch.eye(4, dtype=torch.float64), T_motion)
     result = align_direct(references, targets, torch.eye(4, dtype=torch.float64), iterations=15,
-                          alpha_color=alpha_color)
+                          alpha_color=alpha_color, depth_noise_power=depth_noise_power)
     translation, rotation = _error(result.T, T_motion)
     assert result.ok and result.iterations > 0 and result.points > 1000
     assert start[0] > 0.02 and translation < 5e-4, (start, translation)
@@ -139,13 +140,15 @@ def _noisy_pyramids(seed: int):
 
 @pytest.mark.parametrize("seed", [0, 1])
 @pytest.mark.parametrize("alpha_color", [0.5, 0.8])  # depth alone leaves a plane's motion free (see below)
-def test_the_compiled_alignment_equals_the_reference_to_rounding(seed, alpha_color):
+@pytest.mark.parametrize("depth_noise_power", [0.0, 2.0])
+def test_the_compiled_alignment_equals_the_reference_to_rounding(seed, alpha_color, depth_noise_power):
     if not cpu_backend.is_available():
         pytest.skip(f"the compiled CPU library is not available: {cpu_backend.unavailable_reason()}")
     references, targets = _noisy_pyramids(seed)
     start = se3_exp(0.3 * MOTION)
-    reference = reference_align_direct(references, targets, start, iterations=8, alpha_color=alpha_color)
-    compiled = cpu_backend.align_direct(references, targets, start, iterations=8, alpha_color=alpha_color)
+    options = dict(iterations=8, alpha_color=alpha_color, depth_noise_power=depth_noise_power)
+    reference = reference_align_direct(references, targets, start, **options)
+    compiled = cpu_backend.align_direct(references, targets, start, **options)
     assert compiled.ok and reference.ok
     assert compiled.iterations == reference.iterations
     assert abs(compiled.points - reference.points) <= 0.001 * reference.points

@@ -345,6 +345,23 @@ def test_a_direct_alignment_that_renders_worse_ends_at_the_best_render(one_frame
     assert se3_log(se3_inverse(T_wc_true) @ result.T_wc)[:3].norm() < 0.01
 
 
+@pytest.mark.parametrize("power", [0.0, 2.0])
+def test_the_alignment_reads_depth_residuals_in_the_configured_units_of_sensor_noise(one_frame_map, monkeypatch,
+                                                                                      power):
+    seq, config, sequence, gaussians = one_frame_map
+    settings = tiny_config(seq, "tracking.iterations=1", *_OPTIMIZERS["rprop"]).tracking
+    tracker = Tracker(replace(settings, direct_iterations=4, direct_depth_noise_power=power), config.render)
+    seen_options = []
+
+    def recording(references, targets, T_init, **kwargs):
+        seen_options.append(kwargs)
+        return DirectResult(T=T_init, iterations=1, points=100, ok=True)
+
+    monkeypatch.setattr(tracking, "direct_aligner", lambda backend, device: recording)
+    tracker._direct_alignment(gaussians, sequence[0], se3_inverse(sequence.gt_T_wc[0]))
+    assert seen_options and all(options["depth_noise_power"] == power for options in seen_options)
+
+
 def test_the_direct_alignment_runs_compiled_where_the_render_backend_does():
     from mipslam.geometry.direct import align_direct as reference
     from mipslam.render import cpu as cpu_backend

@@ -7,7 +7,8 @@ each reference point ``X`` (camera frame of the reference, metres) with intensit
 ``T`` (target camera from reference camera), ``X' = T X`` and ``u' = pi(X')``:
 
     r_c = I_t(u') - I_r - b      (intensity in [0, 1]; b: the median of I_t(u') - I_r over the points)
-    r_d = D_t(u') - z(X')        (metres)
+    r_d = (D_t(u') - z(X')) / z(X')^p   (metres for p = 0; ``depth_noise_power`` p = 2 puts it in units of
+                                 an active depth sensor's noise, which grows as z^2: Khoshelham & Elberink 2012)
 
 minimised as ``alpha / N_c * sum w_c (r_c / s_c)^2 + (1 - alpha) / N_d * sum w_d (r_d / s_d)^2``, where
 ``s`` is each term's robust scale (1.4826 x the median absolute residual) and ``w`` Huber's weight at
@@ -161,8 +162,11 @@ class _Residuals:
         return int(self.color_mask.sum()) + int(self.depth_mask.sum())
 
 
-def _residuals(reference: DirectReference, target: DirectTarget, T: torch.Tensor) -> _Residuals:
-    """Residuals of both terms at motion T [4, 4] (float32 math), with their gradients in X'."""
+def _residuals(reference: DirectReference, target: DirectTarget, T: torch.Tensor,
+               depth_noise_power: float = 0.0) -> _Residuals:
+    """Residuals of both terms at motion T [4, 4] (float32 math), with their gradients in X'. With
+    ``depth_noise_power`` p > 0 the depth residual and its gradient are divided by ``z(X')^p`` (a depth
+    sensor's noise grows with distance; the weight is held fixed in the Jacobian, as Huber's)."""
     T = T.to(device=reference.points.device, dtype=torch.float32)
     R, t = T[:3, :3], T[:3, 3]
     X = torch.addmm(t[:, None], R, reference.points.T)  # [3, N]
@@ -192,10 +196,14 @@ def _residuals(reference: DirectReference, target: DirectTarget, T: torch.Tensor
     kept = color[inside]
     if kept.numel():  # a brightness offset between the views (auto exposure) is not motion
         color = color - kept.median()
+    depth_residual, depth_grad = depth - z, through_projection(du, dv, -1.0)
+    if depth_noise_power > 0:
+        noise = inv_z * inv_z if depth_noise_power == 2 else inv_z.pow(depth_noise_power)  # [N] 1 / z^p
+        depth_residual, depth_grad = depth_residual * noise, depth_grad * noise
     return _Residuals(
         points=X,
         color=color, color_grad=through_projection(gu, gv, 0.0), color_mask=inside,
-        depth=depth - z, depth_grad=through_projection(du, dv, -1.0), depth_mask=inside & (usable > 0.999),
+        depth=depth_residual, depth_grad=depth_grad, depth_mask=inside & (usable > 0.999),
     )
 
 
@@ -256,6 +264,7 @@ def align_direct(
     iterations: int,  # Gauss-Newton steps per level at most
     alpha_color: float,  # weight of the intensity term against depth, in [0, 1]
     convergence: float = 1e-5,  # a level stops once a step's se(3) norm falls below this
+    depth_noise_power: float = 0.0,  # depth residuals in units of z^p (0: metres; see _residuals)
 ) -> DirectResult:
     """Align the reference points onto the target image (module docstring): the motion [4, 4] float64."""
     if len(references) != len(targets):
@@ -265,7 +274,7 @@ def align_direct(
     for reference, target in zip(references, targets):
         if reference.points.shape[0] < MIN_POINTS:
             continue
-        res = _residuals(reference, target, T)
+        res = _residuals(reference, target, T, depth_noise_power)
         for _ in range(iterations):
             if res.count < MIN_POINTS:
                 break
@@ -280,7 +289,7 @@ def align_direct(
             accepted = None
             for _ in range(MAX_HALVINGS + 1):
                 candidate = se3_exp(delta) @ T
-                after = _residuals(reference, target, candidate)
+                after = _residuals(reference, target, candidate, depth_noise_power)
                 if after.count >= MIN_POINTS and _cost(after, scales, alpha_color) < before:
                     accepted = after
                     break

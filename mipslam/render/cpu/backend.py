@@ -270,14 +270,14 @@ def rasterize_unfused(means, quats, scales, opacities, colors, viewmat, K, width
 
 
 #: The constants of the direct alignment, in the order of direct_align.h's Constant enum: one source, the
-#: reference's.
+#: reference's (the enum's last, DEPTH_NOISE_POWER, is align_direct's argument).
 _DIRECT_CONSTANTS = (direct_reference.HUBER_K, direct_reference.MAD_TO_SIGMA, direct_reference.MIN_SCALE_INTENSITY,
                      direct_reference.MIN_SCALE_DEPTH, float(direct_reference.MAX_HALVINGS),
                      float(direct_reference.MIN_POINTS), _SERIES_ANGLE_SQ[torch.float64])
 
 
 def align_direct(references, targets, T_init: torch.Tensor, *, iterations: int, alpha_color: float,
-                 convergence: float = 1e-5):
+                 convergence: float = 1e-5, depth_noise_power: float = 0.0):
     """:func:`mipslam.geometry.direct.align_direct` in C++ (direct_align.h): the same arguments, objective and
     step control, float64 normal equations; CPU float32 references and targets. Equals the reference to
     rounding (tests/test_direct_alignment.py), whatever the thread count. -> :class:`~mipslam.geometry.direct.DirectResult`"""
@@ -289,6 +289,7 @@ def align_direct(references, targets, T_init: torch.Tensor, *, iterations: int, 
         levels.append((reference.points.contiguous(), reference.intensity.contiguous(), target.channels[0],
                        (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))))
     T, steps, points, ran = load_extension().direct_align(levels, T_init, iterations, alpha_color, convergence,
-                                                          _DIRECT_CONSTANTS, torch.get_num_threads())
+                                                          (*_DIRECT_CONSTANTS, float(depth_noise_power)),
+                                                          torch.get_num_threads())
     return direct_reference.DirectResult(T=T, iterations=steps, points=points,
                                          ok=ran and bool(torch.isfinite(T).all()))

@@ -28,7 +28,7 @@ constexpr int64_t PARALLEL_MIN = 4096;
 
 // Order of the constants vector (mipslam/render/cpu/backend.py, _DIRECT_CONSTANTS).
 enum Constant { HUBER_K, MAD_TO_SIGMA, MIN_SCALE_INTENSITY, MIN_SCALE_DEPTH, MAX_HALVINGS, MIN_POINTS,
-                SERIES_ANGLE_SQ, NUM_CONSTANTS };
+                SERIES_ANGLE_SQ, DEPTH_NOISE_POWER, NUM_CONSTANTS };
 
 struct Level {
     const float* points;     // [n, 3] reference camera frame, metres
@@ -97,7 +97,7 @@ static inline void sample_channels(const Level& L, const float* pixels, float u,
 // The residuals of both terms at motion T (float32 maths, as the reference), the intensity term's median
 // offset removed (a brightness change between the views is not motion).
 static void evaluate(const Level& L, const float* pixels, const double T[16], Residuals* res,
-                     std::vector<float>* scratch, int threads) {
+                     std::vector<float>* scratch, int threads, float depth_noise_power) {
     const float R[9] = {(float)T[0], (float)T[1], (float)T[2], (float)T[4], (float)T[5],
                         (float)T[6], (float)T[8], (float)T[9], (float)T[10]};
     const float t[3] = {(float)T[3], (float)T[7], (float)T[11]};
@@ -133,6 +133,14 @@ static void evaluate(const Level& L, const float* pixels, const double T[16], Re
         res->gdx[i] = pu;
         res->gdy[i] = pv;
         res->gdz[i] = -1.f - (pu * xz + pv * yz);
+        if (depth_noise_power > 0.f) {  // depth residuals in units of z^p (the reference's _residuals)
+            const float noise = depth_noise_power == 2.f ? inv_z * inv_z  // the common case, without pow
+                                                         : std::pow(inv_z, depth_noise_power);
+            res->rd[i] *= noise;
+            res->gdx[i] *= noise;
+            res->gdy[i] *= noise;
+            res->gdz[i] *= noise;
+        }
         const bool depth_ok = inside && s[6] > 0.999f;
         res->mc[i] = inside ? 1 : 0;
         res->md[i] = depth_ok ? 1 : 0;
@@ -342,7 +350,7 @@ static Outcome align(const std::vector<Level>& levels, double T[16], int64_t ite
     for (const Level& L : levels) {
         if (L.n < min_points) continue;
         const std::vector<float> pixels = interleave(L);
-        evaluate(L, pixels.data(), T, &res, &scratch, threads);
+        evaluate(L, pixels.data(), T, &res, &scratch, threads, (float)C[DEPTH_NOISE_POWER]);
         for (int64_t it = 0; it < iterations; ++it) {
             if (res.count() < min_points) break;
             const double scales[2] = {
@@ -363,7 +371,7 @@ static Outcome align(const std::vector<Level>& levels, double T[16], int64_t ite
             double candidate[16];
             for (int64_t h = 0; h <= (int64_t)C[MAX_HALVINGS]; ++h) {
                 exp_times(delta, T, C[SERIES_ANGLE_SQ], candidate);
-                evaluate(L, pixels.data(), candidate, &after, &scratch, threads);
+                evaluate(L, pixels.data(), candidate, &after, &scratch, threads, (float)C[DEPTH_NOISE_POWER]);
                 if (after.count() >= min_points && cost(after, alpha, scales, C, threads) < before) {
                     accepted = true;
                     break;
