@@ -426,6 +426,8 @@ class LoopConfig:
     # verification method: dense RGB-D alignment, tracking's Gauss-Newton (direct) or Open3D's (rgbd_odometry),
     # the most robust on the room scenes; direct verifies the same candidates 5x faster (docs/pgo.md)
     registration: Literal["direct", "rgbd_odometry", "point_to_plane", "colored"] = "direct"
+    # direct verification's depth residuals in units of z^p, as tracking.direct_depth_noise_power (configs/tum.yaml: 2)
+    registration_depth_noise_power: float = RegistrationOptions.direct_depth_noise_power
     icp_fitness_threshold: float = RegistrationOptions.fitness_threshold  # fraction of points with a correspondence
     icp_rmse_threshold: float = RegistrationOptions.rmse_threshold  # verification: inlier RMSE, metres
     # finest voxel of ICP and of the fitness/RMSE checks (ICP starts at 2x)
@@ -507,6 +509,8 @@ class LoopConfig:
         _check(self.icp_rmse_threshold > 0, "loop.icp_rmse_threshold", "must be positive (metres)")
         _check(self.icp_voxel_m > 0, "loop.icp_voxel_m", "must be positive (metres)")
         _check(self.icp_pixel_stride >= 1, "loop.icp_pixel_stride", "must be >= 1")
+        _check(self.registration_depth_noise_power >= 0, "loop.registration_depth_noise_power",
+               "must be >= 0 (0 = metres)")
         _check(self.odometry_sigma_m > 0, "loop.odometry_sigma_m", "must be positive (metres)")
         _check(self.odometry_sigma_deg > 0, "loop.odometry_sigma_deg", "must be positive (degrees)")
         _check(self.odometry_drift_ratio >= 0, "loop.odometry_drift_ratio", "must be >= 0")

@@ -120,11 +120,11 @@ def test_spectral_weighting_helps_when_tracking_quality_varies():
 def test_config_maps_onto_the_options():
     config = LoopConfig(min_keyframe_gap=7, icp_fitness_threshold=0.4, icp_rmse_threshold=0.03,
                         spectral_edge_weighting=False, low_frequency_correction=True, num_eigenvectors=5,
-                        full_iterations=2)
+                        full_iterations=2, registration_depth_noise_power=2.0)
     pgo = pgo_options(config)
     assert (pgo.spectral_edge_weighting, pgo.low_frequency_correction, pgo.num_eigenvectors, pgo.full_iterations) == (
         False, True, 5, 2)
     assert candidate_options(config).min_gap == 7
     reg = registration_options(config)
-    assert (reg.fitness_threshold, reg.rmse_threshold) == (0.4, 0.03)
+    assert (reg.fitness_threshold, reg.rmse_threshold, reg.direct_depth_noise_power) == (0.4, 0.03, 2.0)
     assert not math.isnan(pgo.kernel_scale)

@@ -18,7 +18,8 @@ PGO_KEYS = {"spectral_edge_weighting": "spectral_edge_weighting", "low_frequency
             "num_eigenvectors": "num_eigenvectors", "full_iterations": "full_iterations"}
 CANDIDATE_KEYS = {"min_keyframe_gap": "min_gap"}
 REGISTRATION_KEYS = {"registration": "method", "icp_fitness_threshold": "fitness_threshold",
-                     "icp_rmse_threshold": "rmse_threshold", "icp_pixel_stride": "pixel_stride"}
+                     "icp_rmse_threshold": "rmse_threshold", "icp_pixel_stride": "pixel_stride",
+                     "registration_depth_noise_power": "direct_depth_noise_power"}
 
 
 def _settings(config: LoopConfig, keys: dict[str, str]) -> dict:

@@ -92,6 +92,7 @@ class RegistrationOptions:
     direct_levels: int = 3  # direct: pyramid levels, each half the next
     direct_iterations: int = 20  # direct: Gauss-Newton steps per level at most
     direct_alpha_color: float = 0.5  # direct: weight of the intensity term against depth (robust-scale units)
+    direct_depth_noise_power: float = 0.0  # direct: depth residuals in units of z^p (align_direct's depth_noise_power)
     # direct: an alignment that moves the estimate further than this is redone by Open3D's rgbd_odometry, whose
     # basin is wider (15 deg of rotation at 40x30 where Gauss-Newton's ends near 10; docs/pgo.md)
     direct_trust_m: float = 0.1
@@ -116,9 +117,11 @@ class RegistrationOptions:
                              f"'direct', got {self.method!r}")
         if not (0.0 < self.direct_scale <= 1.0 and self.direct_min_width >= 1 and self.direct_levels >= 1
                 and self.direct_iterations >= 1 and 0.0 <= self.direct_alpha_color <= 1.0
+                and self.direct_depth_noise_power >= 0
                 and self.direct_trust_m >= 0 and self.direct_trust_deg >= 0):
             raise ValueError("RegistrationOptions: direct_scale must be in (0, 1], direct_min_width, direct_levels "
-                             "and direct_iterations >= 1, direct_alpha_color in [0, 1], direct_trust_* >= 0")
+                             "and direct_iterations >= 1, direct_alpha_color in [0, 1], direct_depth_noise_power and "
+                             "direct_trust_* >= 0")
         if not self.odometry_iterations or min(self.odometry_iterations) < 1:
             raise ValueError("RegistrationOptions.odometry_iterations needs at least one level, each >= 1 iteration")
 
@@ -386,7 +389,8 @@ def register_rgbd_direct(
     references, targets = _direct_pyramids(color_i, depth_i, color_j, depth_j, intrinsics, options)
     align = direct_aligner("auto", torch.device("cpu"))
     aligned = align(references, targets, T_ij_init.detach().to(torch.float64).cpu(),
-                    iterations=options.direct_iterations, alpha_color=options.direct_alpha_color)
+                    iterations=options.direct_iterations, alpha_color=options.direct_alpha_color,
+                    depth_noise_power=options.direct_depth_noise_power)
     change = torch.linalg.inv(T_ij_init.detach().to(torch.float64).cpu()) @ aligned.T
     if (not aligned.ok or float(change[:3, 3].norm()) > options.direct_trust_m
             or math.degrees(float(rotation_angle(change[:3, :3]))) > options.direct_trust_deg):
