@@ -37,5 +37,6 @@ def candidate_options(config: LoopConfig, base: CandidateOptions = CandidateOpti
 
 
 def registration_options(config: LoopConfig, base: RegistrationOptions = RegistrationOptions()) -> RegistrationOptions:
-    """Verification method, acceptance thresholds, voxel sizes (finest and 2x) and pixel stride from the config."""
+    """Verification method, acceptance thresholds, voxel sizes (finest and 2x), pixel stride and the direct
+    alignment's depth units (z^p) from the config."""
     return replace(base, **_settings(config, REGISTRATION_KEYS), voxel_sizes=(2 * config.icp_voxel_m, config.icp_voxel_m))
