@@ -60,6 +60,8 @@ SCENARIOS: dict[str, ScenarioInfo] = {info.name: info for info in (
                                 "uninterrupted run"),
     ScenarioInfo("long_run", "a data_synth loop revisited for many laps: memory, time per frame, map size, "
                              "checkpoint files stay flat"),
+    ScenarioInfo("loop_edges", "loop verification's error against ground truth beside the error its information "
+                               "claims, on frame pairs of a sequence"),
     ScenarioInfo("loop_closure", "loop closure off / full LM / SA-PGO variants inside the SLAM loop on a "
                                  "drifting lap", needs_checkout=True),
     ScenarioInfo("multiscale", "one SLAM map rendered at 1/8..2 of its resolution with each footprint mode"),

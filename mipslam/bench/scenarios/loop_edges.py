@@ -1,0 +1,123 @@
+"""How accurate loop edges are, against how accurate their information says they are (docs/tracking.md,
+"`balanced` on fr1_rpy").
+
+Frame pairs (i, i + gap) of a sequence with ground truth are registered by the loop stage's verification
+(``loop.registration`` and its options, from the config) from their ground-truth relative pose, perturbed by a
+random motion of ``perturb_m`` / ``perturb_deg`` standard deviation per axis. For the pairs it accepts:
+the translation (cm) and rotation (deg) of the error ``inv(T_gt) T_ij`` (median and 90th percentile),
+against the standard deviations the edge's information claims (``sqrt`` of the diagonal of its inverse,
+the norm over the three axes). A ratio well above 1 means the pose graph trusts the edges more than they
+deserve.
+
+    mipslam bench --scenario loop_edges --set dataset.path=../shared/data/tum_fr1_rpy_300
+
+``loop_edges.config`` is the sequence's config (default configs/tum.yaml); config keys (``--set loop.KEY=...``)
+override it; ``loop_edges.synth_frames=N`` runs on a data_synth loop of N frames generated into OUT instead.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mipslam.bench.record import write_benchmark
+from mipslam.bench.scenarios import RECORD_NAME, ScenarioResult
+from mipslam.bench.scenarios.checkout import CONFIGS, parameters
+from mipslam.config import load_config
+from mipslam.datasets import make_sequence
+from mipslam.errors import MipslamError
+from mipslam.geometry.se3 import rotation_angle, se3_exp, se3_inverse
+from mipslam.loop.from_config import registration_options
+from mipslam.loop.registration import register_rgbd_pair
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Options:
+    config: str = str(CONFIGS / "tum.yaml")  # the sequence's config (its dataset and loop sections)
+    gaps: tuple[int, ...] = (30, 60, 120)  # frames between the two frames of a pair
+    first_every: int = 9  # a pair starts at every this many-th frame
+    perturb_m: float = 0.02  # standard deviation per axis of the start's translation error (m)
+    perturb_deg: float = 1.5  # ... and of its rotation error (deg)
+    seed: int = 0  # of the perturbations
+    synth_frames: int = 0  # > 0: a data_synth loop of this many frames (OUT/sequence) instead of the config's
+    synth_size: str = "160x120"  # WIDTHxHEIGHT of that sequence
+    config_overrides: tuple[str, ...] = ()  # config KEY=VALUE, e.g. dataset.path=...
+
+
+SMOKE = dict(config=str(CONFIGS / "synthetic.yaml"), gaps=(2,), first_every=3, synth_frames=8, synth_size="96x72")
+
+
+def _error(T_est: torch.Tensor, T_gt: torch.Tensor) -> tuple[float, float]:
+    """Translation (cm) and rotation (deg) of ``inv(T_gt) T_est``, both [4, 4] float64."""
+    E = se3_inverse(T_gt) @ T_est
+    return float(E[:3, 3].norm()) * 100, math.degrees(float(rotation_angle(E[:3, :3])))
+
+
+def _claimed(information: torch.Tensor) -> tuple[float, float]:
+    """Norm of the per-axis standard deviations (cm, deg) of an information [6, 6] in the order [rho, phi]."""
+    variances = torch.linalg.pinv(information.to(torch.float64)).diagonal().clamp_min(0)
+    return float(variances[:3].sum().sqrt()) * 100, math.degrees(float(variances[3:].sum().sqrt()))
+
+
+def _stats(values: list[float]) -> tuple[float, float]:
+    return (float(np.median(values)), float(np.percentile(values, 90))) if values else (math.nan, math.nan)
+
+
+def run(options: Options, out_dir: Path) -> ScenarioResult:
+    if not options.gaps or min(options.gaps) < 1 or options.first_every < 1:
+        raise MipslamError("loop_edges.gaps must be positive frame counts and loop_edges.first_every >= 1")
+    overrides = list(options.config_overrides)
+    if options.synth_frames > 0:
+        import data_synth
+
+        width, height = (int(v) for v in options.synth_size.lower().split("x"))
+        sequence_dir = out_dir / "sequence"
+        data_synth.generate(sequence_dir, layout="replica", trajectory="loop", width=width, height=height,
+                            frames=options.synth_frames, seed=0, supersample=2)
+        overrides.insert(0, f"dataset.path={sequence_dir}")
+    config = load_config(options.config, overrides=overrides)
+    sequence = make_sequence(config.dataset)
+    if sequence.gt_T_wc is None:
+        raise MipslamError(f"{config.dataset.path}: the sequence has no ground truth; loop_edges needs it")
+    registration = registration_options(config.loop)
+    generator = torch.Generator().manual_seed(options.seed)
+    sigma = torch.tensor([options.perturb_m] * 3 + [math.radians(options.perturb_deg)] * 3, dtype=torch.float64)
+    pairs = [(i, i + gap) for i in range(0, len(sequence), options.first_every) for gap in options.gaps
+             if i + gap < len(sequence) and bool(sequence.gt_valid[i]) and bool(sequence.gt_valid[i + gap])]
+    errors_t, errors_r, claimed_t, claimed_r = [], [], [], []
+    for i, j in pairs:
+        frame_i, frame_j = sequence[i], sequence[j]
+        T_gt = se3_inverse(sequence.gt_T_wc[i].to(torch.float64)) @ sequence.gt_T_wc[j].to(torch.float64)
+        start = se3_exp(torch.randn(6, generator=generator, dtype=torch.float64) * sigma) @ T_gt
+        result = register_rgbd_pair(frame_i.color, frame_i.depth, frame_j.color, frame_j.depth, frame_i.intrinsics,
+                                    start, registration)
+        if not result.accepted:
+            continue
+        t, r = _error(result.T_ij.to(torch.float64), T_gt)
+        s_t, s_r = _claimed(result.information)
+        errors_t.append(t), errors_r.append(r), claimed_t.append(s_t), claimed_r.append(s_r)
+    err_t, err_r, cl_t, cl_r = _stats(errors_t), _stats(errors_r), _stats(claimed_t), _stats(claimed_r)
+    results = {"pairs": len(pairs), "accepted": len(errors_t),
+               "error_t_cm_median": err_t[0], "error_t_cm_p90": err_t[1],
+               "error_r_deg_median": err_r[0], "error_r_deg_p90": err_r[1],
+               "claimed_t_cm_median": cl_t[0], "claimed_r_deg_median": cl_r[0],
+               "ratio_t": err_t[0] / cl_t[0] if cl_t[0] > 0 else math.nan,
+               "ratio_r": err_r[0] / cl_r[0] if cl_r[0] > 0 else math.nan}
+    log.info("loop edges: %s", results)
+    report = "\n".join([
+        f"**{config.dataset.path}**, `loop.registration={config.loop.registration}`, gaps {list(options.gaps)} frames, "
+        f"start perturbed by {options.perturb_m * 100:g} cm / {options.perturb_deg:g} deg per axis", "",
+        "| pairs (accepted) | error t median / p90 [cm] | claimed t [cm] | error r median / p90 [deg] | "
+        "claimed r [deg] | error / claimed (t, r) |",
+        "|---|---:|---:|---:|---:|---:|",
+        f"| {len(pairs)} ({len(errors_t)}) | {err_t[0]:.2f} / {err_t[1]:.2f} | {cl_t[0]:.3f} | "
+        f"{err_r[0]:.2f} / {err_r[1]:.2f} | {cl_r[0]:.3f} | {results['ratio_t']:.1f}, {results['ratio_r']:.1f} |"])
+    files = write_benchmark(out_dir, RECORD_NAME, parameters(options), results, threads=torch.get_num_threads(),
+                            markdown=report)
+    return ScenarioResult(files, report)
