@@ -20,7 +20,8 @@ from mipslam.errors import MipslamError
 REPO = Path(__file__).resolve().parents[3]  # the checkout: mipslam/bench/scenarios/ -> the repository root
 SHARED_DATA = REPO.parent / "shared" / "data"  # the real clips beside the checkout (not part of it)
 
-__all__ = ["CONFIGS", "REPO", "SHARED_DATA", "import_test_helper", "optional_path", "parameters"]
+__all__ = ["CONFIGS", "REPO", "SHARED_DATA", "import_test_helper", "optional_path", "parameters",
+           "synth_sequence"]
 
 
 def import_test_helper(name: str) -> ModuleType:
@@ -46,3 +47,15 @@ def parameters(options: Any) -> dict[str, Any]:
 def optional_path(text: str) -> Path | None:
     """An option that names a file or folder, "" for none."""
     return Path(text).expanduser() if text else None
+
+
+def synth_sequence(out_dir: Path, size: str, frames: int, *, trajectory: str = "loop", supersample: int = 2) -> Path:
+    """A data_synth sequence (Replica layout, seed 0) of ``frames`` frames at ``size`` ("WIDTHxHEIGHT"), written
+    to ``out_dir/sequence``; returns that folder."""
+    import data_synth
+
+    width, height = (int(v) for v in size.lower().split("x"))
+    sequence_dir = out_dir / "sequence"
+    data_synth.generate(sequence_dir, layout="replica", trajectory=trajectory, width=width, height=height,
+                        frames=frames, seed=0, supersample=supersample)
+    return sequence_dir

@@ -26,7 +26,7 @@ import torch
 
 from mipslam.bench.record import write_benchmark
 from mipslam.bench.scenarios import RECORD_NAME, ScenarioResult
-from mipslam.bench.scenarios.checkout import CONFIGS, parameters
+from mipslam.bench.scenarios.checkout import CONFIGS, parameters, synth_sequence
 from mipslam.config import load_config
 from mipslam.datasets import make_sequence
 from mipslam.errors import MipslamError
@@ -134,12 +134,8 @@ def run(options: Options, out_dir: Path) -> ScenarioResult:
         raise MipslamError(f"frontend.methods: unknown {', '.join(unknown)}; choose from {', '.join(METHODS)}")
     overrides = list(options.config_overrides)
     if options.synth_frames > 0:
-        import data_synth
-
-        width, height = (int(v) for v in options.synth_size.lower().split("x"))
-        sequence_dir = out_dir / "sequence"
-        data_synth.generate(sequence_dir, layout="replica", trajectory=options.synth_trajectory, width=width, height=height,
-                            frames=options.synth_frames, seed=0, supersample=2)
+        sequence_dir = synth_sequence(out_dir, options.synth_size, options.synth_frames,
+                                      trajectory=options.synth_trajectory)
         overrides.insert(0, f"dataset.path={sequence_dir}")
     config = load_config(options.config, overrides=overrides)
     sequence = make_sequence(config.dataset)

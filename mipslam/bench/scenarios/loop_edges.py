@@ -26,7 +26,7 @@ import torch
 
 from mipslam.bench.record import write_benchmark
 from mipslam.bench.scenarios import RECORD_NAME, ScenarioResult
-from mipslam.bench.scenarios.checkout import CONFIGS, parameters
+from mipslam.bench.scenarios.checkout import CONFIGS, parameters, synth_sequence
 from mipslam.config import load_config
 from mipslam.datasets import make_sequence
 from mipslam.errors import MipslamError
@@ -74,13 +74,7 @@ def run(options: Options, out_dir: Path) -> ScenarioResult:
         raise MipslamError("loop_edges.gaps must be positive frame counts and loop_edges.first_every >= 1")
     overrides = list(options.config_overrides)
     if options.synth_frames > 0:
-        import data_synth
-
-        width, height = (int(v) for v in options.synth_size.lower().split("x"))
-        sequence_dir = out_dir / "sequence"
-        data_synth.generate(sequence_dir, layout="replica", trajectory="loop", width=width, height=height,
-                            frames=options.synth_frames, seed=0, supersample=2)
-        overrides.insert(0, f"dataset.path={sequence_dir}")
+        overrides.insert(0, f"dataset.path={synth_sequence(out_dir, options.synth_size, options.synth_frames)}")
     config = load_config(options.config, overrides=overrides)
     sequence = make_sequence(config.dataset)
     if sequence.gt_T_wc is None:

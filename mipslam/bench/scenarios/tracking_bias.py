@@ -44,7 +44,7 @@ import torch  # noqa: E402
 import data_synth  # noqa: E402
 from mipslam.bench.record import write_benchmark  # noqa: E402
 from mipslam.bench.scenarios import RECORD_NAME, ScenarioResult  # noqa: E402
-from mipslam.bench.scenarios.checkout import CONFIGS, optional_path, parameters  # noqa: E402
+from mipslam.bench.scenarios.checkout import CONFIGS, optional_path, parameters, synth_sequence  # noqa: E402
 from mipslam.config import Config, load_config  # noqa: E402
 from mipslam.datasets import make_sequence  # noqa: E402
 from mipslam.gaussians import ActivatedGaussians  # noqa: E402
@@ -120,10 +120,7 @@ def coverage(gaussians: ActivatedGaussians, frame: Frame, T_wc: torch.Tensor, co
 def run(options: Options, out_dir: Path) -> ScenarioResult:
     sequence_dir = optional_path(options.sequence)
     if sequence_dir is None:
-        width, height = (int(v) for v in options.synth_size.lower().split("x"))
-        sequence_dir = out_dir / "sequence"
-        data_synth.generate(sequence_dir, layout="replica", trajectory="loop", width=width, height=height,
-                            frames=options.synth_frames, seed=0, supersample=4)
+        sequence_dir = synth_sequence(out_dir, options.synth_size, options.synth_frames, supersample=4)
     torch.set_num_threads(options.threads)
     overrides = [f"dataset.path={sequence_dir.resolve()}", f"dataset.max_frames={max(TRACKED_FRAMES) + 1}",
                  *options.config_overrides]
