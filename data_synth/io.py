@@ -71,10 +71,19 @@ def synth_intrinsics(folder_or_json: str | Path) -> Intrinsics:
 
 
 def ground_truth_poses(folder_or_json: str | Path) -> np.ndarray:
-    """Exact camera-to-world poses of every frame, recomputed from the trajectory's name (free of
-    the rounding in traj.txt / groundtruth.txt).  -> [frames, 4, 4] float64"""
+    """Exact camera-to-world poses of every frame, recomputed from the trajectory's name, or for a replayed
+    file as stored in synth.json (free of the rounding in traj.txt / groundtruth.txt).  -> [frames, 4, 4] float64"""
     path = _json_path(folder_or_json)
     info = read_synth_json(path)
+    if "poses" in info:
+        try:
+            poses = np.asarray(info["poses"], dtype=np.float64).reshape(-1, 4, 4)
+        except (TypeError, ValueError) as error:
+            raise DatasetError(path, f"'poses' must hold 16 numbers per frame: {error}") from error
+        if len(poses) != int(info["frames"]) or not np.isfinite(poses).all():
+            raise DatasetError(path, f"'poses' holds {len(poses)} finite poses for {info['frames']} frames; "
+                                     "regenerate the folder")
+        return poses
     laps = int(info.get("trajectory_options", {}).get("laps", 1))
     try:
         return trajectory_poses(info["trajectory"], int(info["frames"]), laps=laps)

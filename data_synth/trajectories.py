@@ -21,15 +21,26 @@ surface (the zoom's nearest point; elsewhere 0.5 m or more).
 - ``line``: constant-velocity translation of 2 cm per frame (at most 2 m) parallel to the +x wall,
   facing it from 1.6 m, fixed orientation.
 - ``static``: the camera at rest (the middle of ``line``), every frame identical.
+
+A recorded trajectory replays instead (:func:`replay_poses`): a TUM file (``timestamp tx ty tz qx qy
+qz qw``, camera-to-world, e.g. a TUM RGB-D ground truth) sampled at the sequence's frame rate, its
+motion unchanged (real speeds, no speed limit) and moved rigidly into the room: the first camera looks
+along +x, level, and the path's bounding box is centred on the room's axis at 1.4 m. A path that does
+not fit the camera corridor is refused, not squeezed.
+
+Motion blur (:func:`exposure_poses`): a frame's colour can be the mean over poses spread across an
+exposure centred on the frame's time, interpolated between neighbouring frames' poses.
 """
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 from data_synth.scene import ROOM_MAX, ROOM_MIN
-from mipslam.errors import ConfigError
+from mipslam.errors import ConfigError, DatasetError
 
 TRAJECTORIES = ("loop", "zoom", "line", "static")
 
@@ -43,6 +54,10 @@ ZOOM_FAR_MAX_M = 3.0
 ZOOM_HEIGHT_M = 1.3  # centre of the test chart on the +x wall
 WALL_VIEW_DISTANCE_M = 1.6  # line and static
 LINE_MAX_LENGTH_M = 2.0
+CORRIDOR_RADIUS_M = 1.0  # a replayed path stays within this horizontal distance of the room's axis ...
+CORRIDOR_HEIGHT_M = (0.5, 2.1)  # ... and between these heights (0.5 m from floor and ceiling)
+REPLAY_MAX_GAP_S = 0.1  # a sample time between two recorded poses further apart is refused (tracking dropout)
+REPLAY_TIME_TOLERANCE_S = 1e-5
 
 
 def camera_poses(position: np.ndarray, yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
@@ -162,3 +177,84 @@ def trajectory_poses(name: str, frames: int, *, laps: int = 1) -> np.ndarray:
     if name == "line":
         return _line(frames)
     return _static(frames)
+
+
+def replay_poses(path: str | Path, frames: int, fps: float, start_s: float = 0.0) -> np.ndarray:
+    """A recorded camera path moved into the room, sampled at ``fps`` (module docstring).
+
+    path: TUM trajectory file (camera-to-world); frames: number of samples, 0 = as many as the file
+    covers; fps: samples per second; start_s: seconds after the file's first pose of the first sample.
+    Positions are interpolated linearly and rotations by SLERP between the two recorded poses around each
+    sample time. Returns T_wc [frames, 4, 4] float64, OpenCV camera axes, world z up, metres.
+    Raises DatasetError for an unreadable file, a sample outside the recording or in a gap of more than
+    REPLAY_MAX_GAP_S, or a path that leaves the camera corridor.
+    """
+    from mipslam.io.tum import read_tum_trajectory
+
+    path = Path(path)
+    recorded = read_tum_trajectory(path)
+    stamps = recorded.timestamps - recorded.timestamps[0]
+    if not (math.isfinite(start_s) and start_s >= 0):
+        raise ConfigError(f"trajectory start must be >= 0 seconds, got {start_s!r}")
+    # float64 Unix times resolve ~0.2 us: a sample within REPLAY_TIME_TOLERANCE_S of the last pose is on it
+    available = int(math.floor((stamps[-1] - start_s + REPLAY_TIME_TOLERANCE_S) * fps)) + 1
+    if available < 1 or len(stamps) < 2:
+        raise DatasetError(path, f"the recording lasts {stamps[-1]:.2f} s: no sample at {start_s:g} s and later; "
+                                 "choose an earlier start")
+    frames = available if frames == 0 else int(frames)
+    if frames > available:
+        raise DatasetError(path, f"{frames} frames at {fps:g} frames/s from {start_s:g} s need "
+                                 f"{start_s + (frames - 1) / fps:.2f} s of recording; it has {stamps[-1]:.2f} s: "
+                                 f"ask for at most {available} frames")
+    times = np.minimum(start_s + np.arange(frames, dtype=np.float64) / fps, stamps[-1])
+    after = np.clip(np.searchsorted(stamps, times, side="left"), 1, len(stamps) - 1)
+    gaps = stamps[after] - stamps[after - 1]
+    if (gaps > REPLAY_MAX_GAP_S).any():
+        k = int(np.argmax(gaps > REPLAY_MAX_GAP_S))
+        raise DatasetError(path, f"no pose for {gaps[k]:.2f} s around {times[k]:.2f} s after the start (a gap in the "
+                                 "recording): choose a part without gaps with the start and frame count")
+    weight = (times - stamps[after - 1]) / np.where(gaps > 0, gaps, 1.0)
+    positions = (1 - weight)[:, None] * recorded.positions[after - 1] + weight[:, None] * recorded.positions[after]
+    rotations = Slerp(stamps, Rotation.from_matrix(recorded.T_wc[:, :3, :3]))(times).as_matrix()
+
+    # Rigid move into the room: the first camera's axes onto a level camera looking along +x.
+    level = camera_poses(np.zeros((1, 3)), np.zeros(1), np.zeros(1), np.zeros(1))[0, :3, :3]
+    align = level @ rotations[0].T
+    positions = (positions - positions[0]) @ align.T
+    low, high = positions.min(0), positions.max(0)
+    target = np.array([0.5 * (ROOM_MIN[0] + ROOM_MAX[0]), 0.5 * (ROOM_MIN[1] + ROOM_MAX[1]), LOOP_HEIGHT_M])
+    positions = positions - 0.5 * (low + high) + target
+    T = np.zeros((frames, 4, 4))
+    T[:, :3, :3] = align @ rotations
+    T[:, :3, 3] = positions
+    T[:, 3, 3] = 1.0
+    horizontal = np.linalg.norm(positions[:, :2] - target[:2], axis=1).max()
+    if horizontal > CORRIDOR_RADIUS_M or not (CORRIDOR_HEIGHT_M[0] <= positions[:, 2].min()
+                                              and positions[:, 2].max() <= CORRIDOR_HEIGHT_M[1]):
+        extent = high - low
+        raise DatasetError(path, f"the path spans {extent[0]:.2f} x {extent[1]:.2f} x {extent[2]:.2f} m; the room's "
+                                 f"camera corridor is {2 * CORRIDOR_RADIUS_M:g} m across and "
+                                 f"{CORRIDOR_HEIGHT_M[1] - CORRIDOR_HEIGHT_M[0]:.1f} m high: replay a shorter part "
+                                 "(fewer frames, another start)")
+    return T
+
+
+def exposure_poses(poses: np.ndarray, index: int, exposure: float, samples: int) -> np.ndarray:
+    """Poses over frame ``index``'s exposure: ``samples`` times evenly spread over ``exposure`` (a fraction of
+    the frame interval) centred on the frame's time, each interpolated (linear position, SLERP rotation)
+    between the frame's pose and its neighbour's; the first and last frames hold still beyond their ends.
+
+    poses [N, 4, 4] float64 camera-to-world -> [samples, 4, 4]
+    """
+    n = len(poses)
+    offsets = (np.arange(samples, dtype=np.float64) + 0.5) / samples - 0.5 if samples > 1 else np.zeros(1)
+    out = np.repeat(poses[index][None], len(offsets), axis=0)
+    for k, u in enumerate(offsets * exposure):
+        other = index + (1 if u > 0 else -1)
+        if u == 0 or not 0 <= other < n:
+            continue
+        pair = Rotation.from_matrix(np.stack([poses[index, :3, :3], poses[other, :3, :3]]))
+        w = abs(u)
+        out[k, :3, :3] = Slerp([0.0, 1.0], pair)([w]).as_matrix()[0]
+        out[k, :3, 3] = (1 - w) * poses[index, :3, 3] + w * poses[other, :3, 3]
+    return out

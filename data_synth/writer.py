@@ -11,7 +11,9 @@ Contract with ``mipslam.datasets`` (the reader):
   ``1000.0 + i / 30`` with 6 decimals, the same for rgb, depth and ground truth.
 - ``synth.json``: format_version, generator, layout, trajectory, seed, frames, intrinsics,
   depth_scale, fps, scene (everything :func:`data_synth.load_scene` needs), sensor; plus
-  ``trajectory_options`` ({"laps"}) and ``render`` ({"supersample", "fov_deg"}).
+  ``trajectory_options`` ({"laps"}; a replayed file: {"file", "start_s"}), ``render``
+  ({"supersample", "fov_deg", "motion_blur", "blur_samples"}) and, for a replayed file (``trajectory``
+  "file"), ``poses``: every frame's camera-to-world pose, 16 numbers row-major, exact float64.
 - Depth is camera-frame z in metres, 0 = no measurement; poses camera-to-world, OpenCV axes.
 
 ``synth.json`` is written last: a folder without it is an interrupted generation.
@@ -33,7 +35,7 @@ import torch
 from data_synth.render import MAX_SUPERSAMPLE, render_view
 from data_synth.scene import Scene, make_scene
 from data_synth.sensor import SensorOptions, apply_depth_effects, apply_exposure, exposure_parameters
-from data_synth.trajectories import TRAJECTORIES, trajectory_poses
+from data_synth.trajectories import TRAJECTORIES, exposure_poses, replay_poses, trajectory_poses
 from mipslam.errors import ConfigError, DatasetError
 from mipslam.geometry import quat_wxyz_to_xyzw, rotmat_to_quat_wxyz
 from mipslam.types import Intrinsics
@@ -47,6 +49,7 @@ DEPTH_SCALE = {"replica": 6553.5, "tum": 5000.0}
 FPS = 30.0
 TUM_TIME_ORIGIN = 1000.0
 DEFAULT_FOV_DEG = 70.0
+REPLAYED = "file"  # synth.json's trajectory name for a replayed trajectory file
 _WRITTEN_FILES = ("traj.txt", "cam_params.json", "rgb.txt", "depth.txt", "groundtruth.txt", "synth.json")
 _WRITTEN_DIRS = ("results", "rgb", "depth")
 
@@ -150,23 +153,33 @@ def _quaternions_xyzw(poses: np.ndarray) -> np.ndarray:
 def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = "loop", width: int = 320,
              height: int = 240, frames: int = 100, seed: int = 0, supersample: int = 4, depth_noise: float = 0.0,
              depth_holes: float = 0.0, exposure_jitter: float = 0.0, laps: int = 1,
-             fov_deg: float = DEFAULT_FOV_DEG, overwrite: bool = False) -> Path:
+             fov_deg: float = DEFAULT_FOV_DEG, trajectory_start_s: float = 0.0, motion_blur: float = 0.0,
+             blur_samples: int = 8, overwrite: bool = False) -> Path:
     """Render a procedural RGB-D sequence with exact ground truth into ``out_dir``.
 
-    layout: "replica" | "tum" (the CLI's ``--format``); trajectory: one of :data:`TRAJECTORIES`;
+    layout: "replica" | "tum" (the CLI's ``--format``); trajectory: one of :data:`TRAJECTORIES`, or the
+    path of a TUM trajectory file to replay (:func:`data_synth.trajectories.replay_poses`, from
+    ``trajectory_start_s`` seconds into it; frames 0 = as many as it covers);
     width, height: pixels; frames: number of frames; seed: scene, textures and sensor noise;
     supersample: S, colour is the S x S stratified footprint average; depth_noise (m at 1 m,
     grows with z^2), depth_holes (dropout probability, also holes at depth edges),
     exposure_jitter (log-gain std per frame): sensor realism, 0 = off; laps: laps of ``loop``;
-    fov_deg: horizontal field of view; overwrite: replace an earlier data_synth folder.
+    fov_deg: horizontal field of view; motion_blur: the exposure as a fraction of the frame interval,
+    centred on the frame's time (0 = a still camera per frame, up to 1), colour averaged over
+    ``blur_samples`` poses across it (each rendered with the S x S footprint; depth stays the frame's pose's);
+    overwrite: replace an earlier data_synth folder.
     Same arguments give byte-identical folders. Returns the folder's path.
     Raises ConfigError for invalid arguments, DatasetError when a file cannot be written.
     """
     layout = _choice("layout (--format)", layout, LAYOUTS)
-    trajectory = _choice("trajectory", trajectory, TRAJECTORIES)
+    replay_file = None
+    if str(trajectory) not in TRAJECTORIES and Path(str(trajectory)).is_file():
+        replay_file = Path(str(trajectory))
+    else:
+        trajectory = _choice("trajectory (a name, or a TUM trajectory file to replay)", trajectory, TRAJECTORIES)
     width = _require_int("width", width, 8, 8192)
     height = _require_int("height", height, 8, 8192)
-    frames = _require_int("frames", frames, 1, 1_000_000)
+    frames = _require_int("frames", frames, 0 if replay_file else 1, 1_000_000)
     seed = _require_int("seed", seed, 0, 2**63 - 1)
     supersample = _require_int("supersample", supersample, 1, MAX_SUPERSAMPLE)
     laps = _require_int("laps", laps, 1, 1000)
@@ -176,7 +189,18 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
         exposure_jitter=_require_float("exposure_jitter", exposure_jitter, 0.0, 0.5),
     )
     fov_deg = _require_float("fov_deg", fov_deg, 10.0, 150.0)
-    poses = trajectory_poses(trajectory, frames, laps=laps)  # validates laps against the trajectory
+    motion_blur = _require_float("motion_blur", motion_blur, 0.0, 1.0)
+    blur_samples = _require_int("blur_samples", blur_samples, 1, 64)
+    if replay_file is not None:
+        if laps != 1:
+            raise ConfigError(f"laps={laps} applies only to the 'loop' trajectory, not a replayed file")
+        trajectory_start_s = _require_float("trajectory_start_s", trajectory_start_s, 0.0, 1e9)
+        poses = replay_poses(replay_file, frames, FPS, trajectory_start_s)
+        frames, trajectory = len(poses), REPLAYED
+        trajectory_options: dict[str, Any] = {"file": replay_file.name, "start_s": trajectory_start_s}
+    else:
+        poses = trajectory_poses(trajectory, frames, laps=laps)  # validates laps against the trajectory
+        trajectory_options = {"laps": laps}
     out = Path(out_dir)
     _prepare_folder(out, overwrite)
 
@@ -197,6 +221,9 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
     color_names, depth_names = [], []
     for i, T_wc in enumerate(poses):
         color, depth = render_view(scene, T_wc, intrinsics, supersample=supersample)
+        if motion_blur > 0 and blur_samples > 1:
+            color = np.mean([render_view(scene, T, intrinsics, supersample=supersample)[0]
+                             for T in exposure_poses(poses, i, motion_blur, blur_samples)], axis=0)
         if sensor.exposure_jitter > 0:
             color = apply_exposure(color, *exposure[i])
         depth = apply_depth_effects(depth, sensor, seed, i)
@@ -243,10 +270,13 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
         "fps": FPS,
         "scene": scene_dict,
         "sensor": sensor.to_dict(exposure if sensor.exposure_jitter > 0 else None),
-        "trajectory_options": {"laps": laps},
-        "render": {"supersample": supersample, "fov_deg": fov_deg,
+        "trajectory_options": trajectory_options,
+        "render": {"supersample": supersample, "fov_deg": fov_deg, "motion_blur": motion_blur,
+                   "blur_samples": blur_samples,
                    "color": "mean of S x S stratified rays over each pixel's unit square, 8-bit rounded",
                    "depth": "camera-frame z of the pixel-centre ray's hit"},
     }
+    if replay_file is not None:
+        info["poses"] = [[float(v) for v in T.reshape(-1)] for T in poses]  # repr round-trips float64 exactly
     _write_text(out / "synth.json", json.dumps(info, indent=1) + "\n")
     return out

@@ -161,7 +161,11 @@ def _build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--out", type=Path, required=True, help="output folder (must not exist or be empty)")
     sy.add_argument("--overwrite", action="store_true", help="replace an earlier synthetic sequence in --out")
     sy.add_argument("--format", choices=["replica", "tum"], default="replica", help="folder layout")
-    sy.add_argument("--trajectory", default="loop", help="camera trajectory name (loop, zoom, line, static)")
+    sy.add_argument("--trajectory", default="loop",
+                    help="camera trajectory name (loop, zoom, line, static), or a TUM trajectory file to replay "
+                         "at 30 frames/s (e.g. a TUM RGB-D groundtruth.txt; --frames 0: all of it)")
+    sy.add_argument("--trajectory-start", type=float, default=0.0, metavar="S",
+                    help="replayed file: seconds after its first pose of the first frame")
     sy.add_argument("--width", type=int, default=160)
     sy.add_argument("--height", type=int, default=120)
     sy.add_argument("--frames", type=int, default=60)
@@ -171,6 +175,8 @@ def _build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--depth-noise", type=float, default=0.0, help="depth noise at 1 m (metres, grows with z^2)")
     sy.add_argument("--depth-holes", type=float, default=0.0, help="fraction of depth pixels dropped")
     sy.add_argument("--exposure-jitter", type=float, default=0.0, help="per-frame gain/bias jitter")
+    sy.add_argument("--motion-blur", type=float, default=0.0, metavar="F",
+                    help="exposure as a fraction of the frame interval: colour averaged over the motion (0 = off)")
 
     be = sub.add_parser("bench", help="run presets/sweeps on a sequence, repeated, and tabulate speed against accuracy")
     be.add_argument("target", type=Path, metavar="SEQUENCE_OR_CONFIG", nargs="?",
@@ -542,7 +548,7 @@ def _cmd_synth(args) -> int:
         args.out, layout=args.format, trajectory=args.trajectory, width=args.width, height=args.height,
         frames=args.frames, seed=args.seed, supersample=args.supersample, laps=args.laps,
         depth_noise=args.depth_noise, depth_holes=args.depth_holes, exposure_jitter=args.exposure_jitter,
-        overwrite=args.overwrite,
+        trajectory_start_s=args.trajectory_start, motion_blur=args.motion_blur, overwrite=args.overwrite,
     )
     print(f"synthetic {args.format} sequence written to {out}")
     return EXIT_OK
