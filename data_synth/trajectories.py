@@ -192,8 +192,10 @@ def replay_poses(path: str | Path, frames: int, fps: float, start_s: float = 0.0
     from mipslam.io.tum import read_tum_trajectory
 
     path = Path(path)
-    recorded = read_tum_trajectory(path)
-    stamps = recorded.timestamps - recorded.timestamps[0]
+    recorded = read_tum_trajectory(path, allow_duplicate_timestamps=True)
+    first = np.r_[True, np.diff(recorded.timestamps) > 0]  # of poses with one timestamp, the first is kept
+    stamps = recorded.timestamps[first] - recorded.timestamps[0]
+    recorded_T_wc = recorded.T_wc[first]
     if not (math.isfinite(start_s) and start_s >= 0):
         raise ConfigError(f"trajectory start must be >= 0 seconds, got {start_s!r}")
     # float64 Unix times resolve ~0.2 us: a sample within REPLAY_TIME_TOLERANCE_S of the last pose is on it
@@ -214,8 +216,8 @@ def replay_poses(path: str | Path, frames: int, fps: float, start_s: float = 0.0
         raise DatasetError(path, f"no pose for {gaps[k]:.2f} s around {times[k]:.2f} s after the start (a gap in the "
                                  "recording): choose a part without gaps with the start and frame count")
     weight = (times - stamps[after - 1]) / np.where(gaps > 0, gaps, 1.0)
-    positions = (1 - weight)[:, None] * recorded.positions[after - 1] + weight[:, None] * recorded.positions[after]
-    rotations = Slerp(stamps, Rotation.from_matrix(recorded.T_wc[:, :3, :3]))(times).as_matrix()
+    positions = (1 - weight)[:, None] * recorded_T_wc[after - 1, :3, 3] + weight[:, None] * recorded_T_wc[after, :3, 3]
+    rotations = Slerp(stamps, Rotation.from_matrix(recorded_T_wc[:, :3, :3]))(times).as_matrix()
 
     # Rigid move into the room: the first camera's axes onto a level camera looking along +x.
     level = camera_poses(np.zeros((1, 3)), np.zeros(1), np.zeros(1), np.zeros(1))[0, :3, :3]

@@ -72,6 +72,13 @@ def test_replay_refuses_a_path_outside_the_corridor_and_gaps(tmp_path):
     gappy = _write_tum(tmp_path / "gappy.txt", stamps, np.zeros((4, 3)), Rotation.identity(4))
     with pytest.raises(DatasetError, match="gap"):
         replay_poses(gappy, 0, 30.0)
+    # Two poses with one timestamp (TUM's freiburg2_desk ground truth has such a pair): the first is replayed.
+    stamps = 100.0 + np.r_[0.0, 0.05, 0.05, 0.1]
+    twice = _write_tum(tmp_path / "twice.txt", stamps, np.array([[0, 0, 0], [0.1, 0, 0], [0.5, 0, 0], [0.2, 0, 0.0]]),
+                       Rotation.identity(4))
+    replayed = replay_poses(twice, 0, 30.0)
+    assert len(replayed) == 4
+    np.testing.assert_allclose(np.linalg.norm(replayed[1, :3, 3] - replayed[0, :3, 3]), 0.1 * (1 / 30) / 0.05)
     with pytest.raises(DatasetError, match="not found"):
         replay_poses(tmp_path / "missing.txt", 0, 30.0)
 
