@@ -29,7 +29,9 @@ along +x, level, and the path's bounding box is centred on the room's axis at 1.
 not fit the camera corridor is refused, not squeezed.
 
 Motion blur (:func:`exposure_poses`): a frame's colour can be the mean over poses spread across an
-exposure centred on the frame's time, interpolated between neighbouring frames' poses.
+exposure centred on the frame's time, interpolated between neighbouring frames' poses. A depth delay
+(:func:`pose_at`) renders the depth image later than the colour, as a camera whose two streams are not
+synchronised (a Kinect's colour and depth are up to half a frame apart).
 """
 from __future__ import annotations
 
@@ -241,22 +243,28 @@ def replay_poses(path: str | Path, frames: int, fps: float, start_s: float = 0.0
     return T
 
 
+def pose_at(poses: np.ndarray, index: int, offset: float) -> np.ndarray:
+    """The pose ``offset`` frame intervals (|offset| <= 1) after frame ``index``'s, interpolated (linear position,
+    SLERP rotation) between its pose and its neighbour's; the first and last frames hold still beyond their ends.
+
+    poses [N, 4, 4] float64 camera-to-world -> [4, 4]
+    """
+    other = index + (1 if offset > 0 else -1)
+    if offset == 0 or not 0 <= other < len(poses):
+        return poses[index].copy()
+    w = abs(offset)
+    T = poses[index].copy()
+    pair = Rotation.from_matrix(np.stack([poses[index, :3, :3], poses[other, :3, :3]]))
+    T[:3, :3] = Slerp([0.0, 1.0], pair)([w]).as_matrix()[0]
+    T[:3, 3] = (1 - w) * poses[index, :3, 3] + w * poses[other, :3, 3]
+    return T
+
+
 def exposure_poses(poses: np.ndarray, index: int, exposure: float, samples: int) -> np.ndarray:
     """Poses over frame ``index``'s exposure: ``samples`` times evenly spread over ``exposure`` (a fraction of
-    the frame interval) centred on the frame's time, each interpolated (linear position, SLERP rotation)
-    between the frame's pose and its neighbour's; the first and last frames hold still beyond their ends.
+    the frame interval) centred on the frame's time (:func:`pose_at` each).
 
     poses [N, 4, 4] float64 camera-to-world -> [samples, 4, 4]
     """
-    n = len(poses)
     offsets = (np.arange(samples, dtype=np.float64) + 0.5) / samples - 0.5 if samples > 1 else np.zeros(1)
-    out = np.repeat(poses[index][None], len(offsets), axis=0)
-    for k, u in enumerate(offsets * exposure):
-        other = index + (1 if u > 0 else -1)
-        if u == 0 or not 0 <= other < n:
-            continue
-        pair = Rotation.from_matrix(np.stack([poses[index, :3, :3], poses[other, :3, :3]]))
-        w = abs(u)
-        out[k, :3, :3] = Slerp([0.0, 1.0], pair)([w]).as_matrix()[0]
-        out[k, :3, 3] = (1 - w) * poses[index, :3, 3] + w * poses[other, :3, 3]
-    return out
+    return np.stack([pose_at(poses, index, u) for u in offsets * exposure])

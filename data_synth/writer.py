@@ -12,7 +12,7 @@ Contract with ``mipslam.datasets`` (the reader):
 - ``synth.json``: format_version, generator, layout, trajectory, seed, frames, intrinsics,
   depth_scale, fps, scene (everything :func:`data_synth.load_scene` needs), sensor; plus
   ``trajectory_options`` ({"laps"}; a replayed file: {"file", "start_s"}), ``render``
-  ({"supersample", "fov_deg", "motion_blur", "blur_samples"}) and, for a replayed file (``trajectory``
+  ({"supersample", "fov_deg", "motion_blur", "blur_samples", "depth_delay"}) and, for a replayed file (``trajectory``
   "file"), ``poses``: every frame's camera-to-world pose, 16 numbers row-major, exact float64.
 - Depth is camera-frame z in metres, 0 = no measurement; poses camera-to-world, OpenCV axes.
 
@@ -35,7 +35,7 @@ import torch
 from data_synth.render import MAX_SUPERSAMPLE, render_view
 from data_synth.scene import Scene, make_scene
 from data_synth.sensor import SensorOptions, apply_depth_effects, apply_exposure, exposure_parameters
-from data_synth.trajectories import TRAJECTORIES, exposure_poses, replay_poses, trajectory_poses
+from data_synth.trajectories import TRAJECTORIES, exposure_poses, pose_at, replay_poses, trajectory_poses
 from mipslam.errors import ConfigError, DatasetError
 from mipslam.geometry import quat_wxyz_to_xyzw, rotmat_to_quat_wxyz
 from mipslam.types import Intrinsics
@@ -154,7 +154,7 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
              height: int = 240, frames: int = 100, seed: int = 0, supersample: int = 4, depth_noise: float = 0.0,
              depth_holes: float = 0.0, exposure_jitter: float = 0.0, laps: int = 1,
              fov_deg: float = DEFAULT_FOV_DEG, trajectory_start_s: float = 0.0, motion_blur: float = 0.0,
-             blur_samples: int = 8, overwrite: bool = False) -> Path:
+             blur_samples: int = 8, depth_delay: float = 0.0, overwrite: bool = False) -> Path:
     """Render a procedural RGB-D sequence with exact ground truth into ``out_dir``.
 
     layout: "replica" | "tum" (the CLI's ``--format``); trajectory: one of :data:`TRAJECTORIES`, or the
@@ -167,6 +167,8 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
     fov_deg: horizontal field of view; motion_blur: the exposure as a fraction of the frame interval,
     centred on the frame's time (0 = a still camera per frame, up to 1), colour averaged over
     ``blur_samples`` poses across it (each rendered with the S x S footprint; depth stays the frame's pose's);
+    depth_delay: the depth image is taken this many frame intervals after the colour (0 to 1; the ground
+    truth is the colour's pose), as by a camera whose colour and depth streams are not synchronised;
     overwrite: replace an earlier data_synth folder.
     Same arguments give byte-identical folders. Returns the folder's path.
     Raises ConfigError for invalid arguments, DatasetError when a file cannot be written.
@@ -191,6 +193,7 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
     fov_deg = _require_float("fov_deg", fov_deg, 10.0, 150.0)
     motion_blur = _require_float("motion_blur", motion_blur, 0.0, 1.0)
     blur_samples = _require_int("blur_samples", blur_samples, 1, 64)
+    depth_delay = _require_float("depth_delay", depth_delay, 0.0, 1.0)
     if replay_file is not None:
         if laps != 1:
             raise ConfigError(f"laps={laps} applies only to the 'loop' trajectory, not a replayed file")
@@ -224,6 +227,8 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
         if motion_blur > 0 and blur_samples > 1:
             color = np.mean([render_view(scene, T, intrinsics, supersample=supersample)[0]
                              for T in exposure_poses(poses, i, motion_blur, blur_samples)], axis=0)
+        if depth_delay > 0:
+            depth = render_view(scene, pose_at(poses, i, depth_delay), intrinsics, supersample=1)[1]
         if sensor.exposure_jitter > 0:
             color = apply_exposure(color, *exposure[i])
         depth = apply_depth_effects(depth, sensor, seed, i)
@@ -272,7 +277,7 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
         "sensor": sensor.to_dict(exposure if sensor.exposure_jitter > 0 else None),
         "trajectory_options": trajectory_options,
         "render": {"supersample": supersample, "fov_deg": fov_deg, "motion_blur": motion_blur,
-                   "blur_samples": blur_samples,
+                   "blur_samples": blur_samples, "depth_delay": depth_delay,
                    "color": "mean of S x S stratified rays over each pixel's unit square, 8-bit rounded",
                    "depth": "camera-frame z of the pixel-centre ray's hit"},
     }

@@ -177,6 +177,8 @@ def _build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--exposure-jitter", type=float, default=0.0, help="per-frame gain/bias jitter")
     sy.add_argument("--motion-blur", type=float, default=0.0, metavar="F",
                     help="exposure as a fraction of the frame interval: colour averaged over the motion (0 = off)")
+    sy.add_argument("--depth-delay", type=float, default=0.0, metavar="F",
+                    help="depth taken F frame intervals after the colour, as unsynchronised streams (0 = together)")
 
     be = sub.add_parser("bench", help="run presets/sweeps on a sequence, repeated, and tabulate speed against accuracy")
     be.add_argument("target", type=Path, metavar="SEQUENCE_OR_CONFIG", nargs="?",
@@ -548,7 +550,8 @@ def _cmd_synth(args) -> int:
         args.out, layout=args.format, trajectory=args.trajectory, width=args.width, height=args.height,
         frames=args.frames, seed=args.seed, supersample=args.supersample, laps=args.laps,
         depth_noise=args.depth_noise, depth_holes=args.depth_holes, exposure_jitter=args.exposure_jitter,
-        trajectory_start_s=args.trajectory_start, motion_blur=args.motion_blur, overwrite=args.overwrite,
+        trajectory_start_s=args.trajectory_start, motion_blur=args.motion_blur, depth_delay=args.depth_delay,
+        overwrite=args.overwrite,
     )
     print(f"synthetic {args.format} sequence written to {out}")
     return EXIT_OK
