@@ -140,3 +140,22 @@ def test_cli_synth_replays_a_file(tmp_path, capsys):
     assert read_synth_json(out)["frames"] == 4
     assert main(["-q", "synth", "--out", str(tmp_path / "other"), "--trajectory", str(tmp_path / "nope.txt")]) != 0
     assert "trajectory" in capsys.readouterr().err
+
+
+def test_depth_delay_takes_depth_later_than_colour(tmp_path):
+    from data_synth import load_scene, render_view, synth_intrinsics
+    from data_synth.trajectories import pose_at
+
+    together = generate(tmp_path / "together", layout="tum", trajectory="zoom", frames=5, **SMALL)
+    delayed = generate(tmp_path / "delayed", layout="tum", trajectory="zoom", frames=5, depth_delay=0.5, **SMALL)
+    names = sorted((together / "rgb").iterdir())
+    assert all((together / "rgb" / n.name).read_bytes() == (delayed / "rgb" / n.name).read_bytes() for n in names)
+    poses = ground_truth_poses(delayed)  # the colour's poses
+    np.testing.assert_array_equal(poses, ground_truth_poses(together))
+    depth = cv2.imread(str(delayed / "depth" / names[1].name), cv2.IMREAD_UNCHANGED).astype(np.float64) / 5000
+    halfway = render_view(load_scene(delayed), pose_at(poses, 1, 0.5), synth_intrinsics(delayed), supersample=1)[1]
+    np.testing.assert_allclose(depth, np.round(halfway * 5000) / 5000, atol=1e-9)
+    # The dolly moves towards the wall: depth half a frame later is nearer than the colour's frame.
+    at_frame = cv2.imread(str(together / "depth" / names[1].name), cv2.IMREAD_UNCHANGED).astype(np.float64)
+    assert np.median(depth * 5000 - at_frame) < 0
+    np.testing.assert_allclose(pose_at(poses, 4, 0.5), poses[4])  # the last frame holds still
