@@ -61,8 +61,9 @@ def default_intrinsics(width: int, height: int, fov_deg: float = DEFAULT_FOV_DEG
     return Intrinsics(fx=focal, fy=focal, cx=(width - 1) / 2, cy=(height - 1) / 2, width=int(width), height=int(height))
 
 
-def tum_timestamp(index: int) -> str:
-    """Timestamp of frame ``index`` as written: ``1000.0 + i / 30`` with 6 decimals."""
+def tum_timestamp(index: float) -> str:
+    """Timestamp of frame ``index`` as written: ``1000.0 + i / 30`` with 6 decimals (a depth image taken
+    ``depth_delay`` frame intervals later: ``index + depth_delay``)."""
     return f"{TUM_TIME_ORIGIN + index / FPS:.6f}"
 
 
@@ -167,8 +168,9 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
     fov_deg: horizontal field of view; motion_blur: the exposure as a fraction of the frame interval,
     centred on the frame's time (0 = a still camera per frame, up to 1), colour averaged over
     ``blur_samples`` poses across it (each rendered with the S x S footprint; depth stays the frame's pose's);
-    depth_delay: the depth image is taken this many frame intervals after the colour (0 to 1; the ground
-    truth is the colour's pose), as by a camera whose colour and depth streams are not synchronised;
+    depth_delay: the depth image is taken this many frame intervals after the colour (0 to 0.5; the ground
+    truth is the colour's pose, the TUM layout's depth.txt has the depth images' own timestamps), as by a
+    camera whose colour and depth streams are not synchronised;
     overwrite: replace an earlier data_synth folder.
     Same arguments give byte-identical folders. Returns the folder's path.
     Raises ConfigError for invalid arguments, DatasetError when a file cannot be written.
@@ -193,7 +195,8 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
     fov_deg = _require_float("fov_deg", fov_deg, 10.0, 150.0)
     motion_blur = _require_float("motion_blur", motion_blur, 0.0, 1.0)
     blur_samples = _require_int("blur_samples", blur_samples, 1, 64)
-    depth_delay = _require_float("depth_delay", depth_delay, 0.0, 1.0)
+    # below half an interval: a reader pairs each colour image with the nearest depth image
+    depth_delay = _require_float("depth_delay", depth_delay, 0.0, 0.5, high_open=True)
     if replay_file is not None:
         if laps != 1:
             raise ConfigError(f"laps={laps} applies only to the 'loop' trajectory, not a replayed file")
@@ -235,8 +238,7 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
         if layout == "replica":
             color_name, depth_name = f"results/frame{i:06d}.png", f"results/depth{i:06d}.png"
         else:
-            stamp = tum_timestamp(i)
-            color_name, depth_name = f"rgb/{stamp}.png", f"depth/{stamp}.png"
+            color_name, depth_name = f"rgb/{tum_timestamp(i)}.png", f"depth/{tum_timestamp(i + depth_delay)}.png"
         _write_png(out / color_name, color_to_uint8_bgr(color))
         _write_png(out / depth_name, depth_to_uint16(depth, depth_scale))
         color_names.append(color_name)
@@ -252,11 +254,12 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
         _write_text(out / "cam_params.json", json.dumps({"camera": camera}, indent=2) + "\n")
     else:
         stamps = [tum_timestamp(i) for i in range(frames)]
+        depth_stamps = [tum_timestamp(i + depth_delay) for i in range(frames)]
         header = "# data_synth: {kind} (seed {seed}, trajectory {traj})\n# timestamp filename\n"
         _write_text(out / "rgb.txt", header.format(kind="color images", seed=seed, traj=trajectory)
                     + "".join(f"{s} {n}\n" for s, n in zip(stamps, color_names)))
         _write_text(out / "depth.txt", header.format(kind="depth images", seed=seed, traj=trajectory)
-                    + "".join(f"{s} {n}\n" for s, n in zip(stamps, depth_names)))
+                    + "".join(f"{s} {n}\n" for s, n in zip(depth_stamps, depth_names)))
         quats = _quaternions_xyzw(poses)
         rows = [f"{s} " + " ".join(f"{v:.9f}" for v in (*T[:3, 3], *q)) for s, T, q in zip(stamps, poses, quats)]
         _write_text(out / "groundtruth.txt", f"# data_synth ground truth (camera-to-world, seed {seed})\n"

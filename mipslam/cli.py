@@ -178,7 +178,8 @@ def _build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--motion-blur", type=float, default=0.0, metavar="F",
                     help="exposure as a fraction of the frame interval: colour averaged over the motion (0 = off)")
     sy.add_argument("--depth-delay", type=float, default=0.0, metavar="F",
-                    help="depth taken F frame intervals after the colour, as unsynchronised streams (0 = together)")
+                    help="depth taken F (< 0.5) frame intervals after the colour, as unsynchronised streams; the TUM "
+                         "layout's depth.txt gives the later time (0 = together)")
 
     be = sub.add_parser("bench", help="run presets/sweeps on a sequence, repeated, and tabulate speed against accuracy")
     be.add_argument("target", type=Path, metavar="SEQUENCE_OR_CONFIG", nargs="?",

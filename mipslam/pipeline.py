@@ -22,6 +22,8 @@ import torch
 
 from mipslam.config import Config, KeyframeConfig
 from mipslam.datasets import FrameCache, RGBDSequence
+from mipslam.depth_sync import (predicted_depth_motion, recorded_depth_motion, tracked_depth_motion,
+                                with_depth_at_colour_time)
 from mipslam.frontend import Frontend
 from mipslam.io.run_folder import write_json_atomic
 from mipslam.keyframes import insert_keyframe, keyframe_decision
@@ -31,6 +33,7 @@ from mipslam.observer import Observer
 from mipslam.run_control import FrameLoop, PreparedRun, RunSummary, prepare_run, resolve_device, write_checkpoint
 from mipslam.state import FrameRecord, SLAMState
 from mipslam.tracking import Tracker, TrackingResult, track_frame
+from mipslam.types import Frame
 
 log = logging.getLogger(__name__)
 
@@ -92,9 +95,11 @@ def process_frame(stages: Stages, state: SLAMState, index: int, timestamp: float
         frame = stages.frames[index]
     stages.frames.prefetch(index + 1)
     with observe("tracking"):
-        tracked = track_frame(stages.tracker, state, frame, stages.frames, stages.T_wc_first, stages.frontend)
+        tracked = track_frame(stages.tracker, state, depth_for_tracking(stages, state, frame), stages.frames,
+                              stages.T_wc_first, stages.frontend)
         if stages.hooks.after_tracking is not None:
             tracked = stages.hooks.after_tracking(index, tracked, state)
+        frame = depth_after_tracking(stages, state, frame, tracked)
     with observe("keyframe"):
         is_keyframe = tracked.ok and keyframe_decision(stages.keyframes, state, stages.frames, frame,
                                                        tracked.T_wc, tracked.map_coverage).is_keyframe
@@ -107,6 +112,24 @@ def process_frame(stages: Stages, state: SLAMState, index: int, timestamp: float
             with observe("loop"):
                 close_loops(stages.loop, stages.mapper, state, stages.frames)
     return state.end_frame(tracked, stages.tracker.config.running_loss_momentum)
+
+
+def depth_for_tracking(stages: Stages, state: SLAMState, frame: Frame) -> Frame:
+    """``frame`` with its depth at the colour instant by the motion model, for tracking (:mod:`mipslam.depth_sync`)."""
+    if not stages.tracker.config.align_depth_time:
+        return frame
+    return with_depth_at_colour_time(frame, predicted_depth_motion(state, frame))
+
+
+def depth_after_tracking(stages: Stages, state: SLAMState, frame: Frame, tracked: TrackingResult) -> Frame:
+    """``frame`` with its depth at the colour instant by its tracked motion, cached for the later stages."""
+    if not stages.tracker.config.align_depth_time:
+        return frame
+    previous = state.frames[-1] if state.frames else None
+    moved = with_depth_at_colour_time(frame, tracked_depth_motion(previous, frame, tracked.T_wc, tracked.ok))
+    if moved is not frame:
+        stages.frames.put(moved)
+    return moved
 
 
 # ----------------------------------------------------------------------------- the run
@@ -122,6 +145,8 @@ def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evalu
     run = prepare_run(config, run_dir, resume=resume, observer=observer)
     state, observer = run.state, run.observer
     stages = Stages.build(config, run.sequence, run.device, hooks, observer)
+    if config.tracking.align_depth_time:  # old keyframes read again get the depth their tracking gave them
+        stages.frames.adjust = lambda frame: with_depth_at_colour_time(frame, recorded_depth_motion(state, frame))
     started, start_frame = time.perf_counter(), state.next_frame
     try:
         with FrameLoop(run, config) as loop:

@@ -56,6 +56,8 @@ class Frame:
     color: float32 in [0, 1]                        # [H, W, 3]
     depth: float32 metres, 0 = no measurement       # [H, W]
     T_wc_gt: camera-to-world ground truth or None   # [4, 4] float64
+    depth_time_offset: seconds from the colour image's instant to the depth image's (unsynchronised
+        streams, e.g. a Kinect's; 0 where the dataset does not say)
     """
 
     index: int
@@ -64,3 +66,4 @@ class Frame:
     depth: torch.Tensor
     intrinsics: Intrinsics
     T_wc_gt: torch.Tensor | None = None
+    depth_time_offset: float = 0.0

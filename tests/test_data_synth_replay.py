@@ -147,15 +147,25 @@ def test_depth_delay_takes_depth_later_than_colour(tmp_path):
     from data_synth.trajectories import pose_at
 
     together = generate(tmp_path / "together", layout="tum", trajectory="zoom", frames=5, **SMALL)
-    delayed = generate(tmp_path / "delayed", layout="tum", trajectory="zoom", frames=5, depth_delay=0.5, **SMALL)
+    delayed = generate(tmp_path / "delayed", layout="tum", trajectory="zoom", frames=5, depth_delay=0.4, **SMALL)
     names = sorted((together / "rgb").iterdir())
     assert all((together / "rgb" / n.name).read_bytes() == (delayed / "rgb" / n.name).read_bytes() for n in names)
     poses = ground_truth_poses(delayed)  # the colour's poses
     np.testing.assert_array_equal(poses, ground_truth_poses(together))
-    depth = cv2.imread(str(delayed / "depth" / names[1].name), cv2.IMREAD_UNCHANGED).astype(np.float64) / 5000
-    halfway = render_view(load_scene(delayed), pose_at(poses, 1, 0.5), synth_intrinsics(delayed), supersample=1)[1]
-    np.testing.assert_allclose(depth, np.round(halfway * 5000) / 5000, atol=1e-9)
-    # The dolly moves towards the wall: depth half a frame later is nearer than the colour's frame.
+    depth_names = sorted((delayed / "depth").iterdir())
+    assert [float(n.stem) for n in depth_names] == pytest.approx([1000 + (i + 0.4) / 30 for i in range(5)], abs=1e-6)
+    depth = cv2.imread(str(depth_names[1]), cv2.IMREAD_UNCHANGED).astype(np.float64) / 5000
+    later = render_view(load_scene(delayed), pose_at(poses, 1, 0.4), synth_intrinsics(delayed), supersample=1)[1]
+    np.testing.assert_allclose(depth, np.round(later * 5000) / 5000, atol=1e-9)
+    # The dolly moves towards the wall: depth taken later is nearer than at the colour's instant.
     at_frame = cv2.imread(str(together / "depth" / names[1].name), cv2.IMREAD_UNCHANGED).astype(np.float64)
     assert np.median(depth * 5000 - at_frame) < 0
-    np.testing.assert_allclose(pose_at(poses, 4, 0.5), poses[4])  # the last frame holds still
+    np.testing.assert_allclose(pose_at(poses, 4, 0.4), poses[4])  # the last frame holds still
+    # The reader pairs each colour image with its later depth image and knows the offset.
+    from mipslam.config import DatasetConfig
+    from mipslam.datasets import make_sequence
+    frame = make_sequence(DatasetConfig(kind="synthetic", path=str(delayed)))[2]
+    assert frame.depth_time_offset == pytest.approx(0.4 / 30, abs=2e-6)
+    assert make_sequence(DatasetConfig(kind="synthetic", path=str(together)))[2].depth_time_offset == 0.0
+    with pytest.raises(ConfigError, match="depth_delay"):
+        generate(tmp_path / "bad", depth_delay=0.5, frames=2, **SMALL)

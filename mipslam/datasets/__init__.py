@@ -18,6 +18,7 @@ from collections import OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
+from typing import Callable
 
 import torch
 
@@ -100,6 +101,10 @@ class FrameCache:
     50 ms) of being asked for (the reader starved by other processes on every core) is read by the caller
     instead. A camera's sequence must not read ahead (its reader delivers the newest frame when asked).
     Errors surface when the frame is asked for.
+
+    ``adjust``: applied in the caller's thread to every frame read from the sequence before it is cached
+    (the run's depth moved to the colour instant, :mod:`mipslam.depth_sync`); :meth:`put` caches a
+    frame adjusted elsewhere in the cache, the same one ``adjust`` gives when the frame is read again.
     """
 
     def __init__(self, sequence: RGBDSequence, device: torch.device, capacity: int, *, read_ahead: bool = False,
@@ -117,6 +122,7 @@ class FrameCache:
         # how long the latest read in the caller's thread took (the idle-priority reader's own reads can take
         # much longer while it is starved, so they do not count)
         self._read_seconds = 0.0
+        self.adjust: Callable[[Frame], Frame] | None = None
 
     def _read(self, index: int, timed: bool = True) -> Frame:
         start = time.perf_counter()
@@ -168,10 +174,21 @@ class FrameCache:
             return self._kept[index]
         pending = self._pending.pop(index, None)
         frame = self._collect(pending, index) if pending is not None else self._read(index)
+        if self.adjust is not None:
+            frame = self.adjust(frame)
         self._frames[index] = frame
         while len(self._frames) > self.capacity:
             self._frames.popitem(last=False)
         return frame
+
+    def put(self, frame: Frame) -> None:
+        """Cache ``frame`` in place of the frame of its index (wherever that one is kept)."""
+        if frame.index in self._kept:
+            self._kept[frame.index] = frame
+        self._frames[frame.index] = frame
+        self._frames.move_to_end(frame.index)
+        while len(self._frames) > self.capacity:
+            self._frames.popitem(last=False)
 
     def close(self) -> None:
         """Stop the background reader (frames on their way are finished and dropped)."""

@@ -79,6 +79,7 @@ class FrameRecord:
     depth_path: Path
     timestamp: float
     source_index: int
+    depth_time_offset: float = 0.0  # the depth image's timestamp minus the colour image's (seconds)
 
 
 def select_indices(total: int, first_frame: int, stride: int, max_frames: int, where: Path) -> list[int]:
@@ -133,6 +134,7 @@ class SequenceBase:
         self.downscale = int(downscale)
         self._timestamps = np.array([r.timestamp for r in self._records], dtype=np.float64)
         self._source_indices = np.array([r.source_index for r in self._records], dtype=np.int64)
+        self._depth_time_offsets = np.array([r.depth_time_offset for r in self._records], dtype=np.float64)
         if gt_T_wc is None:
             self._gt_T_wc = None
             self._gt_valid = np.zeros(len(keep), dtype=bool)
@@ -225,6 +227,7 @@ class SequenceBase:
             depth=torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32)),
             intrinsics=self.intrinsics,
             T_wc_gt=T_wc,
+            depth_time_offset=float(self._depth_time_offsets[index]),
         )
 
     def __repr__(self) -> str:

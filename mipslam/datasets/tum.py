@@ -244,7 +244,8 @@ class TUMSequence(SequenceBase):
             logger.info("%s: %d of %d colour images have no depth partner within %g s and are skipped",
                         rgb_list, len(rgb_times) - len(pairs), len(rgb_times), tolerance)
         records = [
-            FrameRecord(self.root / rgb_names[i], self.root / depth_names[j], float(rgb_times[i]), k)
+            FrameRecord(self.root / rgb_names[i], self.root / depth_names[j], float(rgb_times[i]), k,
+                        float(depth_times[j] - rgb_times[i]))
             for k, (i, j) in enumerate(pairs)
         ]
 

@@ -1,0 +1,81 @@
+"""Depth images taken at another instant than their colour image, moved to the colour image's instant.
+
+A Kinect-type camera streams colour and depth unsynchronised: on TUM RGB-D's freiburg1 sequences a depth
+image comes 0-17 ms after the colour image it is paired with. Under fast motion that is a different
+viewpoint (2.4 deg/frame at 30 frames/s is 0.6 deg in 8 ms), and a depth image read as if taken with the
+colour image pulls tracking and places the map where the camera was not (data_synth with
+``--depth-delay 0.25`` on the fr1_rpy motion: ATE 1.0 -> 1.9 cm; docs/tracking.md, "Colour and depth at
+different instants").
+
+Motion model: constant body-frame velocity over the frame interval, so the depth camera at
+``t + offset`` sits at ``T_cd = exp((offset / interval) * log(T_prev^-1 T_curr))`` in the colour
+camera's frame at ``t`` (``T_prev``, ``T_curr``: camera-to-world at the start and end of an interval
+of ``interval`` seconds). The depth image is resampled into the colour camera by backward warping
+with nearest-pixel reads, so no depth mixes two surfaces.
+"""
+from __future__ import annotations
+
+import torch
+
+from mipslam.geometry.se3 import se3_exp, se3_inverse, se3_log
+
+# A frame further than this from the colour instant (seconds) is not moved: a pairing that far apart is not
+# a stream offset (dataset.association_tolerance_s is 0.02 s).
+MAX_OFFSET_S = 0.05
+WARP_ITERATIONS = 2  # fixed-point steps of the backward warp (sub-pixel after 2 for motions of a few pixels)
+
+
+def depth_camera_motion(T_prev_wc: torch.Tensor, T_curr_wc: torch.Tensor, interval_s: float,
+                        offset_s: float) -> torch.Tensor | None:
+    """Pose of the depth camera (at ``t + offset_s``) in the colour camera's frame (at ``t``), from the
+    motion ``T_prev -> T_curr`` over ``interval_s`` seconds (module docstring). None when there is nothing
+    to move (no offset, no usable interval, or an offset beyond MAX_OFFSET_S).
+
+    T_prev_wc, T_curr_wc: [4, 4] camera-to-world -> T_cd [4, 4] float64
+    """
+    if offset_s == 0 or not (0 < interval_s) or abs(offset_s) > MAX_OFFSET_S:
+        return None
+    xi = se3_log(se3_inverse(T_prev_wc.to(torch.float64)) @ T_curr_wc.to(torch.float64))  # [6] per interval
+    return se3_exp(xi * (offset_s / interval_s))
+
+
+def depth_at_colour_time(depth: torch.Tensor, K: torch.Tensor, T_cd: torch.Tensor) -> torch.Tensor:
+    """The depth image as the colour camera would have measured it: each colour pixel ``u`` reads the depth
+    pixel its surface point was seen at, ``u_d = pi(T_cd^-1 X)``, ``X = pi^-1(u, z)`` with ``z`` found by
+    WARP_ITERATIONS fixed-point steps from the depth at ``u``; the result is that point's z in the colour
+    camera. Pixels whose source falls outside the image or on a missing depth read 0 (no measurement).
+
+    depth: metres, 0 = none   # [H, W]
+    K: intrinsics             # [3, 3]
+    T_cd: depth camera in the colour camera's frame   # [4, 4]
+    Returns [H, W] depth, dtype and device of ``depth``.
+    """
+    H, W = depth.shape
+    dev, dtype = depth.device, torch.float64
+    K = K.to(dev, dtype)
+    T_dc = se3_inverse(T_cd.to(dev, dtype))
+    T_cd = T_cd.to(dev, dtype)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    v, u = torch.meshgrid(torch.arange(H, device=dev, dtype=dtype), torch.arange(W, device=dev, dtype=dtype),
+                          indexing="ij")
+    ray = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], -1)  # [H, W, 3], z = 1
+    source = depth.to(dtype)
+    z = source.clone()
+    row = col = None
+    for _ in range(WARP_ITERATIONS):
+        X_d = (ray * z[..., None]) @ T_dc[:3, :3].T + T_dc[:3, 3]  # colour-pixel ray point in the depth camera
+        zd = X_d[..., 2].clamp_min(1e-6)
+        col = torch.round(X_d[..., 0] / zd * fx + cx)
+        row = torch.round(X_d[..., 1] / zd * fy + cy)
+        inside = (col >= 0) & (col <= W - 1) & (row >= 0) & (row <= H - 1) & (X_d[..., 2] > 0)
+        read = source[row.clamp(0, H - 1).long(), col.clamp(0, W - 1).long()]
+        read = torch.where(inside, read, torch.zeros_like(read))
+        # the read depth is the depth camera's; its point seen from the colour camera gives the next z
+        X_c = (_unproject(row, col, read, fx, fy, cx, cy) @ T_cd[:3, :3].T + T_cd[:3, 3])
+        z = torch.where(read > 0, X_c[..., 2], torch.zeros_like(read))
+    return z.clamp_min(0).to(depth.dtype)
+
+
+def _unproject(row: torch.Tensor, col: torch.Tensor, z: torch.Tensor, fx, fy, cx, cy) -> torch.Tensor:
+    """Pixels (row, col) at depth z -> camera points [H, W, 3]."""
+    return torch.stack([(col - cx) / fx * z, (row - cy) / fy * z, z], -1)
