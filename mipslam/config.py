@@ -212,10 +212,10 @@ class TrackingConfig:
     # loss then judges that pose against the motion model's (Tracker.best_start). Bounded by relocalise_max_*.
     dense_start: bool = False
     # Move each depth image to its colour image's instant with the motion model, where the dataset gives the two
-    # their own timestamps (TUM's rgb.txt and depth.txt; mipslam.depth_sync). It needs timestamps of the
-    # capture: data_synth on fr1_rpy's motion with depth 8 ms late 1.92 -> 0.98 cm, but on fr1_rpy itself, whose
-    # timestamps are the driver's, moving the depth by them is worse, even with the ground-truth motion
-    # (docs/tracking.md, "Colour and depth at different instants"), so it is off.
+    # their own timestamps (TUM's rgb.txt and depth.txt; mipslam.depth_sync). It needs timestamps of the capture:
+    # data_synth on fr1_rpy's motion with depth 8 ms late 1.92 / 1.99 -> 0.98 / 1.25 cm (seeds 0 / 1), but on
+    # fr1_rpy itself, whose timestamps are the driver's, moving the depth by them is worse, even with the
+    # ground-truth motion (docs/tracking.md, "Colour and depth at different instants"), so it is off.
     align_depth_time: bool = False
     # Momentum of the running level of good tracking losses (exponential moving average) that the failure and
     # relocalisation ratios compare a frame's loss with.
