@@ -12,7 +12,7 @@ Contract with ``mipslam.datasets`` (the reader):
 - ``synth.json``: format_version, generator, layout, trajectory, seed, frames, intrinsics,
   depth_scale, fps, scene (everything :func:`data_synth.load_scene` needs), sensor; plus
   ``trajectory_options`` ({"laps"}; a replayed file: {"file", "start_s"}), ``render``
-  ({"supersample", "fov_deg", "motion_blur", "blur_samples", "depth_delay"}) and, for a replayed file (``trajectory``
+  ({"supersample", "fov_deg", "motion_blur", "blur_samples", "depth_delay", "rolling_shutter"}) and, for a replayed file (``trajectory``
   "file"), ``poses``: every frame's camera-to-world pose, 16 numbers row-major, exact float64.
 - Depth is camera-frame z in metres, 0 = no measurement; poses camera-to-world, OpenCV axes.
 
@@ -35,7 +35,7 @@ import torch
 from data_synth.render import MAX_SUPERSAMPLE, render_view
 from data_synth.scene import Scene, make_scene
 from data_synth.sensor import SensorOptions, apply_depth_effects, apply_exposure, exposure_parameters
-from data_synth.trajectories import TRAJECTORIES, exposure_poses, pose_at, replay_poses, trajectory_poses
+from data_synth.trajectories import TRAJECTORIES, pose_at, replay_poses, trajectory_poses
 from mipslam.errors import ConfigError, DatasetError
 from mipslam.geometry import quat_wxyz_to_xyzw, rotmat_to_quat_wxyz
 from mipslam.types import Intrinsics
@@ -151,11 +151,38 @@ def _quaternions_xyzw(poses: np.ndarray) -> np.ndarray:
     return quat_wxyz_to_xyzw(q_wxyz).numpy()
 
 
+ROLLING_SHUTTER_BANDS = 16
+
+
+def _moving_camera_color(scene: Scene, poses: np.ndarray, index: int, intrinsics: Intrinsics, supersample: int,
+                         motion_blur: float, blur_samples: int, rolling_shutter: float) -> np.ndarray:
+    """Frame ``index``'s colour [H, W, 3] seen by a moving camera: each band of rows (one band for a global
+    shutter) at its read-out time, ``(band centre / H - 0.5) * rolling_shutter`` frame intervals from the frame's,
+    averaged over the exposure's poses around that time (motion blur)."""
+    H = intrinsics.height
+    bands = ROLLING_SHUTTER_BANDS if rolling_shutter > 0 else 1
+    samples = blur_samples if motion_blur > 0 else 1
+    blur = (np.arange(samples) + 0.5) / samples - 0.5 if samples > 1 else np.zeros(1)
+    color = np.zeros((H, intrinsics.width, 3), dtype=np.float32)
+    for b in range(bands):
+        r0, r1 = b * H // bands, (b + 1) * H // bands
+        if r1 <= r0:
+            continue
+        band = Intrinsics(fx=intrinsics.fx, fy=intrinsics.fy, cx=intrinsics.cx, cy=intrinsics.cy - r0,
+                          width=intrinsics.width, height=r1 - r0)
+        readout = (0.5 * (r0 + r1) / H - 0.5) * rolling_shutter
+        offsets = np.clip(readout + blur * motion_blur, -1.0, 1.0)
+        color[r0:r1] = np.mean([render_view(scene, pose_at(poses, index, float(u)), band, supersample=supersample)[0]
+                                for u in offsets], axis=0)
+    return color
+
+
 def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = "loop", width: int = 320,
              height: int = 240, frames: int = 100, seed: int = 0, supersample: int = 4, depth_noise: float = 0.0,
              depth_holes: float = 0.0, exposure_jitter: float = 0.0, laps: int = 1,
              fov_deg: float = DEFAULT_FOV_DEG, trajectory_start_s: float = 0.0, motion_blur: float = 0.0,
-             blur_samples: int = 8, depth_delay: float = 0.0, overwrite: bool = False) -> Path:
+             blur_samples: int = 8, depth_delay: float = 0.0, rolling_shutter: float = 0.0,
+             overwrite: bool = False) -> Path:
     """Render a procedural RGB-D sequence with exact ground truth into ``out_dir``.
 
     layout: "replica" | "tum" (the CLI's ``--format``); trajectory: one of :data:`TRAJECTORIES`, or the
@@ -170,7 +197,9 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
     ``blur_samples`` poses across it (each rendered with the S x S footprint; depth stays the frame's pose's);
     depth_delay: the depth image is taken this many frame intervals after the colour (0 to 0.5; the ground
     truth is the colour's pose, the TUM layout's depth.txt has the depth images' own timestamps), as by a
-    camera whose colour and depth streams are not synchronised;
+    camera whose colour and depth streams are not synchronised; rolling_shutter: the colour image's rows are
+    read out top to bottom over this fraction of the frame interval, centred on the frame's time (0 = a
+    global shutter; up to 1), in ROLLING_SHUTTER_BANDS bands of rows, each with its own pose;
     overwrite: replace an earlier data_synth folder.
     Same arguments give byte-identical folders. Returns the folder's path.
     Raises ConfigError for invalid arguments, DatasetError when a file cannot be written.
@@ -197,6 +226,7 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
     blur_samples = _require_int("blur_samples", blur_samples, 1, 64)
     # below half an interval: a reader pairs each colour image with the nearest depth image
     depth_delay = _require_float("depth_delay", depth_delay, 0.0, 0.5, high_open=True)
+    rolling_shutter = _require_float("rolling_shutter", rolling_shutter, 0.0, 1.0)
     if replay_file is not None:
         if laps != 1:
             raise ConfigError(f"laps={laps} applies only to the 'loop' trajectory, not a replayed file")
@@ -227,9 +257,9 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
     color_names, depth_names = [], []
     for i, T_wc in enumerate(poses):
         color, depth = render_view(scene, T_wc, intrinsics, supersample=supersample)
-        if motion_blur > 0 and blur_samples > 1:
-            color = np.mean([render_view(scene, T, intrinsics, supersample=supersample)[0]
-                             for T in exposure_poses(poses, i, motion_blur, blur_samples)], axis=0)
+        if (motion_blur > 0 and blur_samples > 1) or rolling_shutter > 0:
+            color = _moving_camera_color(scene, poses, i, intrinsics, supersample, motion_blur, blur_samples,
+                                         rolling_shutter)
         if depth_delay > 0:
             depth = render_view(scene, pose_at(poses, i, depth_delay), intrinsics, supersample=1)[1]
         if sensor.exposure_jitter > 0:
@@ -280,7 +310,7 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
         "sensor": sensor.to_dict(exposure if sensor.exposure_jitter > 0 else None),
         "trajectory_options": trajectory_options,
         "render": {"supersample": supersample, "fov_deg": fov_deg, "motion_blur": motion_blur,
-                   "blur_samples": blur_samples, "depth_delay": depth_delay,
+                   "blur_samples": blur_samples, "depth_delay": depth_delay, "rolling_shutter": rolling_shutter,
                    "color": "mean of S x S stratified rays over each pixel's unit square, 8-bit rounded",
                    "depth": "camera-frame z of the pixel-centre ray's hit"},
     }

@@ -169,3 +169,30 @@ def test_depth_delay_takes_depth_later_than_colour(tmp_path):
     assert make_sequence(DatasetConfig(kind="synthetic", path=str(together)))[2].depth_time_offset == 0.0
     with pytest.raises(ConfigError, match="depth_delay"):
         generate(tmp_path / "bad", depth_delay=0.5, frames=2, **SMALL)
+
+
+def test_rolling_shutter_reads_each_band_of_rows_at_its_own_time(tmp_path):
+    from data_synth import load_scene, render_view, synth_intrinsics
+    from data_synth.trajectories import pose_at
+    from data_synth.writer import ROLLING_SHUTTER_BANDS
+
+    still = generate(tmp_path / "still", layout="tum", trajectory="static", frames=3, **SMALL)
+    still_rs = generate(tmp_path / "still_rs", layout="tum", trajectory="static", frames=3, rolling_shutter=0.8, **SMALL)
+    assert _files_equal(still / "rgb", still_rs / "rgb")  # a camera at rest: no read-out effect
+    moving = generate(tmp_path / "rs", layout="tum", trajectory="loop", frames=6, rolling_shutter=0.8, **SMALL)
+    poses, intrinsics, scene = ground_truth_poses(moving), synth_intrinsics(moving), load_scene(moving)
+    image = cv2.imread(str(sorted((moving / "rgb").iterdir())[3]))[..., ::-1].astype(np.float64) / 255
+    H = SMALL["height"]
+    for band in (0, ROLLING_SHUTTER_BANDS - 1):  # the top rows are read first, the bottom rows last
+        r0, r1 = band * H // ROLLING_SHUTTER_BANDS, (band + 1) * H // ROLLING_SHUTTER_BANDS
+        readout = (0.5 * (r0 + r1) / H - 0.5) * 0.8
+        full = render_view(scene, pose_at(poses, 3, readout), intrinsics, supersample=1)[0]
+        np.testing.assert_allclose(image[r0:r1], full[r0:r1], atol=0.51 / 255)
+    at_frame = render_view(scene, poses[3], intrinsics, supersample=1)[0]
+    assert np.abs(image[:2] - at_frame[:2]).mean() > 1 / 255  # ... not at the frame's own time
+    with pytest.raises(ConfigError, match="rolling_shutter"):
+        generate(tmp_path / "bad", rolling_shutter=-0.1, frames=2, **SMALL)
+
+
+def _files_equal(a: Path, b: Path) -> bool:
+    return [p.read_bytes() for p in sorted(a.iterdir())] == [p.read_bytes() for p in sorted(b.iterdir())]
