@@ -11,6 +11,10 @@ which other frames are generated.
   beside a depth discontinuity (a 4-neighbour more than ``DISCONTINUITY_RELATIVE`` of its depth
   nearer or farther) drops out as well, as at the shadowed edges of real RGB-D depth maps. The
   discontinuities are found on the exact depth, before noise.
+- Radial depth bias: ``z' = z * (1 + b * r^2)``, ``r^2 = ((u - cx) / cx)^2 + ((v - cy) / cy)^2`` with the
+  image centre ``(cx, cy) = ((W - 1) / 2, (H - 1) / 2)`` (0 at the centre, 1 at the middle of each edge, 2 at the
+  corners); b (``depth_radial_bias``) is the relative error at the edges, as the spatially varying depth
+  distortion of structured-light sensors (Herrera, Kannala and Heikkila 2012). Applied before the noise.
 - Exposure: per frame a gain ``exp(jitter * n1)`` and a bias ``jitter / 4 * n2``
   (``n1, n2 ~ N(0, 1)``), colour ``clip(gain * c + bias, 0, 1)``; the values go to synth.json.
 """
@@ -33,6 +37,7 @@ class SensorOptions:
     depth_noise: float = 0.0  # metres of standard deviation at 1 m depth (scales with z^2)
     depth_holes: float = 0.0  # probability of a random dropout per pixel (and holes at discontinuities)
     exposure_jitter: float = 0.0  # standard deviation of log gain per frame (bias: a quarter of it)
+    depth_radial_bias: float = 0.0  # relative depth error at the middle of the image's edges (twice at the corners)
 
     def to_dict(self, exposure: np.ndarray | None = None) -> dict:
         return {
@@ -41,6 +46,8 @@ class SensorOptions:
             "depth_holes": self.depth_holes,
             "depth_holes_model": (f"random dropouts with probability depth_holes, plus every pixel beside a "
                                   f"depth jump larger than {DISCONTINUITY_RELATIVE} of its depth (when depth_holes > 0)"),
+            "depth_radial_bias": self.depth_radial_bias,
+            "depth_radial_bias_model": "z * (1 + depth_radial_bias * r^2), r = 1 at the middle of each image edge",
             "exposure_jitter": self.exposure_jitter,
             "exposure_model": "color = clip(gain * color + bias, 0, 1) per frame",
             "exposure": [] if exposure is None else [[float(g), float(b)] for g, b in exposure],
@@ -80,8 +87,13 @@ def depth_discontinuities(depth: np.ndarray, relative: float = DISCONTINUITY_REL
 
 
 def apply_depth_effects(depth: np.ndarray, options: SensorOptions, seed: int, frame: int) -> np.ndarray:
-    """Noise, then holes, on an exact depth map.  depth [H, W] float32 metres -> [H, W] float32"""
+    """Radial bias, noise, then holes, on an exact depth map.  depth [H, W] float32 metres -> [H, W] float32"""
     out = depth.astype(np.float64)
+    if options.depth_radial_bias != 0:
+        H, W = depth.shape
+        cy, cx = (H - 1) / 2, (W - 1) / 2
+        v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+        out = out * (1 + options.depth_radial_bias * (((u - cx) / max(cx, 0.5)) ** 2 + ((v - cy) / max(cy, 0.5)) ** 2))
     if options.depth_noise > 0:
         noise = _rng(seed, _STREAM_DEPTH_NOISE, frame).standard_normal(depth.shape)
         out = out + options.depth_noise * out * out * noise

@@ -182,7 +182,7 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
              depth_holes: float = 0.0, exposure_jitter: float = 0.0, laps: int = 1,
              fov_deg: float = DEFAULT_FOV_DEG, trajectory_start_s: float = 0.0, motion_blur: float = 0.0,
              blur_samples: int = 8, depth_delay: float = 0.0, rolling_shutter: float = 0.0,
-             overwrite: bool = False) -> Path:
+             depth_radial_bias: float = 0.0, overwrite: bool = False) -> Path:
     """Render a procedural RGB-D sequence with exact ground truth into ``out_dir``.
 
     layout: "replica" | "tum" (the CLI's ``--format``); trajectory: one of :data:`TRAJECTORIES`, or the
@@ -200,6 +200,8 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
     camera whose colour and depth streams are not synchronised; rolling_shutter: the colour image's rows are
     read out top to bottom over this fraction of the frame interval, centred on the frame's time (0 = a
     global shutter; up to 1), in ROLLING_SHUTTER_BANDS bands of rows, each with its own pose;
+    depth_radial_bias: relative depth error at the middle of the image's edges, growing as r^2 from 0 at the
+    centre (:mod:`data_synth.sensor`; -0.1 to 0.1);
     overwrite: replace an earlier data_synth folder.
     Same arguments give byte-identical folders. Returns the folder's path.
     Raises ConfigError for invalid arguments, DatasetError when a file cannot be written.
@@ -220,6 +222,7 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
         depth_noise=_require_float("depth_noise", depth_noise, 0.0, 0.1),
         depth_holes=_require_float("depth_holes", depth_holes, 0.0, 1.0, high_open=True),
         exposure_jitter=_require_float("exposure_jitter", exposure_jitter, 0.0, 0.5),
+        depth_radial_bias=_require_float("depth_radial_bias", depth_radial_bias, -0.1, 0.1),
     )
     fov_deg = _require_float("fov_deg", fov_deg, 10.0, 150.0)
     motion_blur = _require_float("motion_blur", motion_blur, 0.0, 1.0)

@@ -177,6 +177,8 @@ def _build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--exposure-jitter", type=float, default=0.0, help="per-frame gain/bias jitter")
     sy.add_argument("--motion-blur", type=float, default=0.0, metavar="F",
                     help="exposure as a fraction of the frame interval: colour averaged over the motion (0 = off)")
+    sy.add_argument("--depth-radial-bias", type=float, default=0.0, metavar="B",
+                    help="depth too far by B (relative) at the image's edges, 2B at its corners, 0 at its centre")
     sy.add_argument("--rolling-shutter", type=float, default=0.0, metavar="F",
                     help="colour rows read out top to bottom over F frame intervals (0 = a global shutter)")
     sy.add_argument("--depth-delay", type=float, default=0.0, metavar="F",
@@ -554,7 +556,7 @@ def _cmd_synth(args) -> int:
         frames=args.frames, seed=args.seed, supersample=args.supersample, laps=args.laps,
         depth_noise=args.depth_noise, depth_holes=args.depth_holes, exposure_jitter=args.exposure_jitter,
         trajectory_start_s=args.trajectory_start, motion_blur=args.motion_blur, depth_delay=args.depth_delay,
-        rolling_shutter=args.rolling_shutter, overwrite=args.overwrite,
+        rolling_shutter=args.rolling_shutter, depth_radial_bias=args.depth_radial_bias, overwrite=args.overwrite,
     )
     print(f"synthetic {args.format} sequence written to {out}")
     return EXIT_OK

@@ -196,3 +196,23 @@ def test_rolling_shutter_reads_each_band_of_rows_at_its_own_time(tmp_path):
 
 def _files_equal(a: Path, b: Path) -> bool:
     return [p.read_bytes() for p in sorted(a.iterdir())] == [p.read_bytes() for p in sorted(b.iterdir())]
+
+
+def test_radial_depth_bias_grows_from_the_centre():
+    from data_synth.sensor import SensorOptions, apply_depth_effects
+
+    depth = np.full((31, 41), 2.0, dtype=np.float32)
+    biased = apply_depth_effects(depth, SensorOptions(depth_radial_bias=0.01), seed=0, frame=0)
+    assert biased[15, 20] == pytest.approx(2.0)  # the centre
+    assert biased[15, 0] == pytest.approx(2.02) and biased[0, 20] == pytest.approx(2.02)  # the middle of the edges
+    assert biased[0, 0] == pytest.approx(2.04) and biased[30, 40] == pytest.approx(2.04)  # the corners
+    missing = depth.copy()
+    missing[3, 4] = 0
+    assert apply_depth_effects(missing, SensorOptions(depth_radial_bias=0.01), seed=0, frame=0)[3, 4] == 0
+
+
+def test_generate_records_the_radial_bias(tmp_path):
+    out = generate(tmp_path / "b", layout="tum", trajectory="static", frames=1, depth_radial_bias=0.02, **SMALL)
+    assert read_synth_json(out)["sensor"]["depth_radial_bias"] == 0.02
+    with pytest.raises(ConfigError, match="depth_radial_bias"):
+        generate(tmp_path / "bad", depth_radial_bias=0.5, frames=1, **SMALL)
