@@ -39,7 +39,7 @@ import math
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
+import torch
 
 from data_synth.scene import ROOM_MAX, ROOM_MIN
 from mipslam.errors import ConfigError, DatasetError
@@ -186,11 +186,12 @@ def replay_poses(path: str | Path, frames: int, fps: float, start_s: float = 0.0
 
     path: TUM trajectory file (camera-to-world); frames: number of samples, 0 = as many as the file
     covers; fps: samples per second; start_s: seconds after the file's first pose of the first sample.
-    Positions are interpolated linearly and rotations by SLERP between the two recorded poses around each
-    sample time. Returns T_wc [frames, 4, 4] float64, OpenCV camera axes, world z up, metres.
+    Each sample is interpolated between the two recorded poses around it, as the TUM reader interpolates ground
+    truth (:func:`mipslam.datasets.tum.poses_at_times`: linear position, SLERP rotation). Returns T_wc [frames, 4, 4] float64, OpenCV camera axes, world z up, metres.
     Raises DatasetError for an unreadable file, a sample outside the recording or in a gap of more than
     REPLAY_MAX_GAP_S, or a path that leaves the camera corridor.
     """
+    from mipslam.datasets.tum import poses_at_times
     from mipslam.io.tum import read_tum_trajectory
 
     path = Path(path)
@@ -217,9 +218,9 @@ def replay_poses(path: str | Path, frames: int, fps: float, start_s: float = 0.0
         k = int(np.argmax(gaps > REPLAY_MAX_GAP_S))
         raise DatasetError(path, f"no pose for {gaps[k]:.2f} s around {times[k]:.2f} s after the start (a gap in the "
                                  "recording): choose a part without gaps with the start and frame count")
-    weight = (times - stamps[after - 1]) / np.where(gaps > 0, gaps, 1.0)
-    positions = (1 - weight)[:, None] * recorded_T_wc[after - 1, :3, 3] + weight[:, None] * recorded_T_wc[after, :3, 3]
-    rotations = Slerp(stamps, Rotation.from_matrix(recorded_T_wc[:, :3, :3]))(times).as_matrix()
+    # every sample lies within REPLAY_MAX_GAP_S of a recorded pose on either side: all interpolated, all valid
+    sampled, _ = poses_at_times(stamps, torch.from_numpy(recorded_T_wc), times, REPLAY_MAX_GAP_S)
+    positions, rotations = sampled[:, :3, 3].numpy(), sampled[:, :3, :3].numpy()
 
     # Rigid move into the room: the first camera's axes onto a level camera looking along +x.
     level = camera_poses(np.zeros((1, 3)), np.zeros(1), np.zeros(1), np.zeros(1))[0, :3, :3]
@@ -244,27 +245,26 @@ def replay_poses(path: str | Path, frames: int, fps: float, start_s: float = 0.0
 
 
 def pose_at(poses: np.ndarray, index: int, offset: float) -> np.ndarray:
-    """The pose ``offset`` frame intervals (|offset| <= 1) after frame ``index``'s, interpolated (linear position,
-    SLERP rotation) between its pose and its neighbour's; the first and last frames hold still beyond their ends.
+    """The pose ``offset`` frame intervals (|offset| <= 1) after frame ``index``'s, interpolated between its pose
+    and its neighbour's (:func:`mipslam.datasets.tum.interpolate_pose`: linear position, SLERP rotation); the
+    first and last frames hold still beyond their ends.
 
     poses [N, 4, 4] float64 camera-to-world -> [4, 4]
     """
+    from mipslam.datasets.tum import interpolate_pose
+
     other = index + (1 if offset > 0 else -1)
     if offset == 0 or not 0 <= other < len(poses):
         return poses[index].copy()
-    w = abs(offset)
-    T = poses[index].copy()
-    pair = Rotation.from_matrix(np.stack([poses[index, :3, :3], poses[other, :3, :3]]))
-    T[:3, :3] = Slerp([0.0, 1.0], pair)([w]).as_matrix()[0]
-    T[:3, 3] = (1 - w) * poses[index, :3, 3] + w * poses[other, :3, 3]
-    return T
+    return interpolate_pose(torch.from_numpy(poses[index]), torch.from_numpy(poses[other]), abs(offset)).numpy()
 
 
-def exposure_poses(poses: np.ndarray, index: int, exposure: float, samples: int) -> np.ndarray:
-    """Poses over frame ``index``'s exposure: ``samples`` times evenly spread over ``exposure`` (a fraction of
-    the frame interval) centred on the frame's time (:func:`pose_at` each).
+def exposure_poses(poses: np.ndarray, index: int, exposure: float, samples: int, centre: float = 0.0) -> np.ndarray:
+    """Poses over an exposure of frame ``index``: ``samples`` times evenly spread over ``exposure`` (a fraction of
+    the frame interval) centred ``centre`` frame intervals from the frame's time (:func:`pose_at` each, at most
+    one interval away).
 
     poses [N, 4, 4] float64 camera-to-world -> [samples, 4, 4]
     """
     offsets = (np.arange(samples, dtype=np.float64) + 0.5) / samples - 0.5 if samples > 1 else np.zeros(1)
-    return np.stack([pose_at(poses, index, u) for u in offsets * exposure])
+    return np.stack([pose_at(poses, index, float(u)) for u in np.clip(centre + offsets * exposure, -1.0, 1.0)])

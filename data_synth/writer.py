@@ -35,7 +35,7 @@ import torch
 from data_synth.render import MAX_SUPERSAMPLE, render_view
 from data_synth.scene import Scene, make_scene
 from data_synth.sensor import SensorOptions, apply_depth_effects, apply_exposure, exposure_parameters
-from data_synth.trajectories import TRAJECTORIES, pose_at, replay_poses, trajectory_poses
+from data_synth.trajectories import TRAJECTORIES, exposure_poses, pose_at, replay_poses, trajectory_poses
 from mipslam.errors import ConfigError, DatasetError
 from mipslam.geometry import quat_wxyz_to_xyzw, rotmat_to_quat_wxyz
 from mipslam.types import Intrinsics
@@ -162,7 +162,6 @@ def _moving_camera_color(scene: Scene, poses: np.ndarray, index: int, intrinsics
     H = intrinsics.height
     bands = ROLLING_SHUTTER_BANDS if rolling_shutter > 0 else 1
     samples = blur_samples if motion_blur > 0 else 1
-    blur = (np.arange(samples) + 0.5) / samples - 0.5 if samples > 1 else np.zeros(1)
     color = np.zeros((H, intrinsics.width, 3), dtype=np.float32)
     for b in range(bands):
         r0, r1 = b * H // bands, (b + 1) * H // bands
@@ -171,9 +170,8 @@ def _moving_camera_color(scene: Scene, poses: np.ndarray, index: int, intrinsics
         band = Intrinsics(fx=intrinsics.fx, fy=intrinsics.fy, cx=intrinsics.cx, cy=intrinsics.cy - r0,
                           width=intrinsics.width, height=r1 - r0)
         readout = (0.5 * (r0 + r1) / H - 0.5) * rolling_shutter
-        offsets = np.clip(readout + blur * motion_blur, -1.0, 1.0)
-        color[r0:r1] = np.mean([render_view(scene, pose_at(poses, index, float(u)), band, supersample=supersample)[0]
-                                for u in offsets], axis=0)
+        color[r0:r1] = np.mean([render_view(scene, T, band, supersample=supersample)[0]
+                                for T in exposure_poses(poses, index, motion_blur, samples, centre=readout)], axis=0)
     return color
 
 

@@ -176,17 +176,19 @@ class FrameCache:
         frame = self._collect(pending, index) if pending is not None else self._read(index)
         if self.adjust is not None:
             frame = self.adjust(frame)
-        self._frames[index] = frame
-        while len(self._frames) > self.capacity:
-            self._frames.popitem(last=False)
+        self._store(index, frame)
         return frame
 
     def put(self, frame: Frame) -> None:
         """Cache ``frame`` in place of the frame of its index (wherever that one is kept)."""
         if frame.index in self._kept:
             self._kept[frame.index] = frame
-        self._frames[frame.index] = frame
-        self._frames.move_to_end(frame.index)
+        self._store(frame.index, frame)
+
+    def _store(self, index: int, frame: Frame) -> None:
+        """``frame`` becomes the newest of the last ``capacity`` frames, as frame ``index``."""
+        self._frames[index] = frame
+        self._frames.move_to_end(index)
         while len(self._frames) > self.capacity:
             self._frames.popitem(last=False)
 

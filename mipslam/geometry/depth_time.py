@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import torch
 
+from mipslam.geometry.camera import unproject
 from mipslam.geometry.se3 import se3_exp, se3_inverse, se3_log
 
 # A frame further than this from the colour instant (seconds) is not moved: a pairing that far apart is not
@@ -61,7 +62,6 @@ def depth_at_colour_time(depth: torch.Tensor, K: torch.Tensor, T_cd: torch.Tenso
     ray = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], -1)  # [H, W, 3], z = 1
     source = depth.to(dtype)
     z = source.clone()
-    row = col = None
     for _ in range(WARP_ITERATIONS):
         X_d = (ray * z[..., None]) @ T_dc[:3, :3].T + T_dc[:3, 3]  # colour-pixel ray point in the depth camera
         zd = X_d[..., 2].clamp_min(1e-6)
@@ -71,11 +71,6 @@ def depth_at_colour_time(depth: torch.Tensor, K: torch.Tensor, T_cd: torch.Tenso
         read = source[row.clamp(0, H - 1).long(), col.clamp(0, W - 1).long()]
         read = torch.where(inside, read, torch.zeros_like(read))
         # the read depth is the depth camera's; its point seen from the colour camera gives the next z
-        X_c = (_unproject(row, col, read, fx, fy, cx, cy) @ T_cd[:3, :3].T + T_cd[:3, 3])
+        X_c = unproject(torch.stack([col, row], -1), read, K) @ T_cd[:3, :3].T + T_cd[:3, 3]
         z = torch.where(read > 0, X_c[..., 2], torch.zeros_like(read))
     return z.clamp_min(0).to(depth.dtype)
-
-
-def _unproject(row: torch.Tensor, col: torch.Tensor, z: torch.Tensor, fx, fy, cx, cy) -> torch.Tensor:
-    """Pixels (row, col) at depth z -> camera points [H, W, 3]."""
-    return torch.stack([(col - cx) / fx * z, (row - cy) / fy * z, z], -1)
