@@ -152,3 +152,18 @@ def test_every_quoted_scenario_command_parses(where, command):
     argv = [re.sub(r"=([NRS])$", lambda m: "=" + PLACEHOLDER_VALUES[m.group(1)], token) for token in argv]
     name, options = _request(*[token for token in argv[2:] if token != "ARGS"])
     assert name in SCENARIOS
+
+
+def test_sequence_scenarios_read_a_folder_with_its_own_kinds_config(tmp_path):
+    from mipslam.bench.scenarios.checkout import CONFIGS, sequence_config
+
+    synth, tum, replica = tmp_path / "synth", tmp_path / "tum", tmp_path / "replica"
+    for folder in (synth, tum, replica / "results"):
+        folder.mkdir(parents=True)
+    (synth / "synth.json").write_text("{}")
+    (tum / "rgb.txt").write_text(""), (tum / "depth.txt").write_text("")
+    assert sequence_config("", [f"dataset.path={synth}"]) == str(CONFIGS / "synthetic.yaml")
+    assert sequence_config("", [f"dataset.path={tum}", "loop.enabled=true"]) == str(CONFIGS / "tum.yaml")
+    assert sequence_config("", [f"dataset.path={tum}", f"dataset.path={replica}"]) == str(CONFIGS / "replica.yaml")
+    assert sequence_config("", []) == str(CONFIGS / "tum.yaml")  # no folder: the real-data default
+    assert sequence_config("mine.yaml", [f"dataset.path={synth}"]) == "mine.yaml"  # an explicit config wins

@@ -12,7 +12,7 @@ import importlib.util
 import sys
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import Any, Sequence
 
 from mipslam.config import CONFIG_DIR as CONFIGS
 from mipslam.errors import MipslamError
@@ -21,7 +21,7 @@ REPO = Path(__file__).resolve().parents[3]  # the checkout: mipslam/bench/scenar
 SHARED_DATA = REPO.parent / "shared" / "data"  # the real clips beside the checkout (not part of it)
 
 __all__ = ["CONFIGS", "REPO", "SHARED_DATA", "import_test_helper", "optional_path", "parameters",
-           "synth_sequence"]
+           "sequence_config", "synth_sequence"]
 
 
 def import_test_helper(name: str) -> ModuleType:
@@ -47,6 +47,21 @@ def parameters(options: Any) -> dict[str, Any]:
 def optional_path(text: str) -> Path | None:
     """An option that names a file or folder, "" for none."""
     return Path(text).expanduser() if text else None
+
+
+def sequence_config(config: str, overrides: Sequence[str]) -> str:
+    """The config a scenario reads its sequence with: ``config`` when given, else ``configs/<kind>.yaml`` for the
+    folder the last ``dataset.path=`` override names (data_synth, Replica or TUM, as ``mipslam bench SEQUENCE``
+    chooses), else ``configs/tum.yaml``."""
+    if config:
+        return config
+    paths = [item.split("=", 1)[1] for item in overrides if item.startswith("dataset.path=")]
+    folder = Path(paths[-1]).expanduser() if paths else None
+    if folder is None or not folder.is_dir():
+        return str(CONFIGS / "tum.yaml")
+    from mipslam.bench.spec import detect_sequence_kind
+
+    return str(CONFIGS / f"{detect_sequence_kind(folder)}.yaml")
 
 
 def synth_sequence(out_dir: Path, size: str, frames: int, *, trajectory: str = "loop", supersample: int = 2) -> Path:

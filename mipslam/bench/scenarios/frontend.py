@@ -9,7 +9,7 @@ then repeats the last motion) and milliseconds per frame.
     mipslam bench --scenario frontend --set dataset.path=../shared/data/tum_fr1_rpy_300 \
         --set frontend.methods=orb_pnp,cv_rgbd,o3d_rgbd
 
-``frontend.config`` is the sequence's config (default configs/tum.yaml), config keys (``--set dataset.path=...``)
+``frontend.config`` is the sequence's config (default: configs/<kind>.yaml for the ``dataset.path`` folder's kind, as ``mipslam bench SEQUENCE`` picks it, else configs/tum.yaml), config keys (``--set dataset.path=...``)
 override it; ``frontend.synth_frames=N`` runs on a data_synth sequence of N frames generated into OUT instead.
 """
 from __future__ import annotations
@@ -26,7 +26,7 @@ import torch
 
 from mipslam.bench.record import write_benchmark
 from mipslam.bench.scenarios import RECORD_NAME, ScenarioResult
-from mipslam.bench.scenarios.checkout import CONFIGS, parameters, synth_sequence
+from mipslam.bench.scenarios.checkout import CONFIGS, parameters, sequence_config, synth_sequence
 from mipslam.config import load_config
 from mipslam.datasets import make_sequence
 from mipslam.errors import MipslamError
@@ -41,7 +41,7 @@ METHODS = ("orb_pnp", "cv_rgbd", "cv_depth", "cv_rgb", "o3d_rgbd", "orb_o3d", "c
 
 @dataclass(frozen=True)
 class Options:
-    config: str = str(CONFIGS / "tum.yaml")  # the sequence's config (its dataset section)
+    config: str = ""  # the sequence's config (its dataset section); "" = configs/<kind>.yaml of dataset.path
     methods: tuple[str, ...] = ("orb_pnp", "cv_rgbd", "cv_depth", "o3d_rgbd", "orb_o3d")  # from METHODS
     synth_frames: int = 0  # > 0: a data_synth loop of this many frames (OUT/sequence) instead of the config's
     synth_size: str = "160x120"  # WIDTHxHEIGHT of that sequence
@@ -137,7 +137,7 @@ def run(options: Options, out_dir: Path) -> ScenarioResult:
         sequence_dir = synth_sequence(out_dir, options.synth_size, options.synth_frames,
                                       trajectory=options.synth_trajectory)
         overrides.insert(0, f"dataset.path={sequence_dir}")
-    config = load_config(options.config, overrides=overrides)
+    config = load_config(sequence_config(options.config, overrides), overrides=overrides)
     sequence = make_sequence(config.dataset)
     frames = [sequence[i] for i in range(len(sequence))]
     gt = sequence.gt_T_wc.numpy()

@@ -11,7 +11,7 @@ deserve.
 
     mipslam bench --scenario loop_edges --set dataset.path=../shared/data/tum_fr1_rpy_300
 
-``loop_edges.config`` is the sequence's config (default configs/tum.yaml); config keys (``--set loop.KEY=...``)
+``loop_edges.config`` is the sequence's config (default: configs/<kind>.yaml for the ``dataset.path`` folder's kind, as ``mipslam bench SEQUENCE`` picks it, else configs/tum.yaml); config keys (``--set loop.KEY=...``)
 override it; ``loop_edges.synth_frames=N`` runs on a data_synth loop of N frames generated into OUT instead.
 """
 from __future__ import annotations
@@ -26,7 +26,7 @@ import torch
 
 from mipslam.bench.record import write_benchmark
 from mipslam.bench.scenarios import RECORD_NAME, ScenarioResult
-from mipslam.bench.scenarios.checkout import CONFIGS, parameters, synth_sequence
+from mipslam.bench.scenarios.checkout import CONFIGS, parameters, sequence_config, synth_sequence
 from mipslam.config import load_config
 from mipslam.datasets import make_sequence
 from mipslam.errors import MipslamError
@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class Options:
-    config: str = str(CONFIGS / "tum.yaml")  # the sequence's config (its dataset and loop sections)
+    config: str = ""  # the sequence's config (its dataset and loop sections); "" = configs/<kind>.yaml of dataset.path
     gaps: tuple[int, ...] = (30, 60, 120)  # frames between the two frames of a pair
     first_every: int = 9  # a pair starts at every this many-th frame
     perturb_m: float = 0.02  # standard deviation per axis of the start's translation error (m)
@@ -75,7 +75,7 @@ def run(options: Options, out_dir: Path) -> ScenarioResult:
     overrides = list(options.config_overrides)
     if options.synth_frames > 0:
         overrides.insert(0, f"dataset.path={synth_sequence(out_dir, options.synth_size, options.synth_frames)}")
-    config = load_config(options.config, overrides=overrides)
+    config = load_config(sequence_config(options.config, overrides), overrides=overrides)
     sequence = make_sequence(config.dataset)
     if sequence.gt_T_wc is None:
         raise MipslamError(f"{config.dataset.path}: the sequence has no ground truth; loop_edges needs it")
