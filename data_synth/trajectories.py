@@ -246,12 +246,12 @@ def replay_poses(path: str | Path, frames: int, fps: float, start_s: float = 0.0
 
 def pose_at(poses: np.ndarray, index: int, offset: float) -> np.ndarray:
     """The pose ``offset`` frame intervals (|offset| <= 1) after frame ``index``'s, interpolated between its pose
-    and its neighbour's (:func:`mipslam.datasets.tum.interpolate_pose`: linear position, SLERP rotation); the
+    and its neighbour's (:func:`mipslam.geometry.interpolate_pose`: linear position, SLERP rotation); the
     first and last frames hold still beyond their ends.
 
     poses [N, 4, 4] float64 camera-to-world -> [4, 4]
     """
-    from mipslam.datasets.tum import interpolate_pose
+    from mipslam.geometry import interpolate_pose
 
     other = index + (1 if offset > 0 else -1)
     if offset == 0 or not 0 <= other < len(poses):

@@ -19,7 +19,7 @@ import torch
 from mipslam.checkpoint import capture_rng_state, restore_rng_state, select_prefix, with_prefix
 from mipslam.config import MappingConfig
 from mipslam.gaussians import GaussianMap, GaussianOptimizer
-from mipslam.geometry import se3_inverse
+from mipslam.geometry import interpolate_pose, se3_inverse
 from mipslam.loop.closer import LoopState
 
 if TYPE_CHECKING:
@@ -111,29 +111,49 @@ class SLAMState:
             return torch.zeros(0, 4, 4, dtype=torch.float64)
         return torch.stack([self.frames[p].T_wc.to(torch.float64) for p in self.keyframe_frames])
 
-    def correct_keyframe_poses(self, T_wc_new: torch.Tensor) -> int:
-        """Apply a pose-graph correction: keyframes take their new poses, every other frame keeps its
-        pose relative to its reference keyframe, and every Gaussian moves with its anchor keyframe.
+    def set_poses(self, T_wc: torch.Tensor) -> None:
+        """Every frame takes its pose from ``T_wc`` [F, 4, 4] (as :meth:`poses` returned it): undoes a correction
+        exactly, where applying the inverse correction would blend the non-keyframes again."""
+        if T_wc.shape != (len(self.frames), 4, 4):
+            raise ValueError(f"{tuple(T_wc.shape)} poses for {len(self.frames)} frames")
+        self.frames = [replace(record, T_wc=T_wc[k].to(torch.float64).cpu().clone())
+                       for k, record in enumerate(self.frames)]
+
+    def correct_keyframe_poses(self, T_wc_new: torch.Tensor, *, move_map: bool = True) -> int:
+        """Apply a pose-graph correction: keyframes take their new poses, every other frame moves with the
+        keyframes around it, and every Gaussian moves with its anchor keyframe.
 
         T_wc_new: corrected poses of all keyframes   # [K, 4, 4]
-        With ``C_k = T_new_k inv(T_old_k)``: a non-keyframe tracked after keyframe r becomes
-        ``C_r T_wc`` (frames without a reference keyframe stay), and
-        :meth:`GaussianMap.transform_by_anchor` applies ``C`` to the map. Returns how many Gaussians moved.
+        With ``C_k = T_new_k inv(T_old_k)``: a non-keyframe tracked after keyframe r, a fraction ``s`` of the
+        frames from r to the next keyframe n, becomes ``interpolate_pose(C_r T_wc, C_n T_wc, s)``; after the
+        newest keyframe (no n yet) it becomes ``C_r T_wc``. Moving a whole stretch by ``C_r`` alone would leave
+        a step at n wherever the graph corrects neighbouring keyframes differently. Frames without a reference
+        keyframe stay. :meth:`GaussianMap.transform_by_anchor` applies ``C`` to the map (``move_map``; without
+        it only the poses move, as when mapping refines keyframe poses). Returns how many Gaussians moved.
         """
         T_old = self.keyframe_poses()
         if T_wc_new.shape != T_old.shape:
             raise ValueError(f"correction for {tuple(T_wc_new.shape)} keyframe poses, the state has {tuple(T_old.shape)}")
         T_new = T_wc_new.detach().to(dtype=torch.float64, device="cpu")
+        changed = [not torch.equal(a, b) for a, b in zip(T_new, T_old)]
         corrections = T_new @ se3_inverse(T_old)  # [K, 4, 4]
+        corrections[[not c for c in changed]] = torch.eye(4, dtype=torch.float64)  # exactly: those frames stay
         for position, record in enumerate(self.frames):
             if record.keyframe_id >= 0:
-                T = T_new[record.keyframe_id].clone()
-            elif record.reference_keyframe >= 0:
-                T = corrections[record.reference_keyframe] @ record.T_wc.to(torch.float64)
-            else:
+                if changed[record.keyframe_id]:
+                    self.frames[position] = replace(record, T_wc=T_new[record.keyframe_id].clone())
                 continue
+            r = record.reference_keyframe
+            following = r + 1 if 0 <= r and r + 1 < len(changed) else None
+            if r < 0 or not (changed[r] or (following is not None and changed[following])):
+                continue  # no reference keyframe, or nothing around this frame moved
+            T = corrections[r] @ record.T_wc.to(torch.float64)
+            if following is not None:
+                start, end = self.keyframe_frames[r], self.keyframe_frames[following]
+                T = interpolate_pose(T, corrections[following] @ record.T_wc.to(torch.float64),
+                                     (position - start) / (end - start))
             self.frames[position] = replace(record, T_wc=T)
-        return self.gaussian_map.transform_by_anchor(corrections)
+        return self.gaussian_map.transform_by_anchor(corrections) if move_map else 0
 
     def append_frame(self, index: int, timestamp: float, tracked: "TrackingResult", is_keyframe: bool) -> FrameRecord:
         """Record a tracked frame (sequence ``index``, ``timestamp`` in seconds); a keyframe takes the next

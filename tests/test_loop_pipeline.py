@@ -202,6 +202,34 @@ def test_correction_keeps_frames_relative_to_their_reference_keyframe():
     torch.testing.assert_close(local_after, local_before, atol=1e-6, rtol=0)
 
 
+def test_frames_between_two_keyframes_blend_their_corrections_and_an_undo_is_exact():
+    # keyframe 0, two frames tracked after it, keyframe 1, one frame after it; only keyframe 1 is corrected.
+    from mipslam.geometry import interpolate_pose
+
+    T = [se3_exp(torch.tensor([0.1 * k, 0.02 * k, 0, 0, 0.05 * k, 0], dtype=F64)) for k in range(5)]
+    roles = [(0, -1), (-1, 0), (-1, 0), (1, 0), (-1, 1)]  # (keyframe id, reference keyframe)
+    frames = [FrameRecord(k, float(k), T[k], torch.zeros(2), "ok", 0.1, 5, kf, ref, T[k])
+              for k, (kf, ref) in enumerate(roles)]
+    state = SLAMState(GaussianMap.empty(dtype=torch.float32), None, torch.Generator(), frames=frames,
+                      keyframe_frames=[0, 3])
+    before = state.poses()
+    C1 = se3_exp(torch.tensor([0.03, -0.02, 0.01, 0.01, -0.02, 0.005], dtype=F64))
+    state.correct_keyframe_poses(torch.stack([T[0], C1 @ T[3]]))
+    after = state.poses()
+    torch.testing.assert_close(after[0], T[0])
+    torch.testing.assert_close(after[3], C1 @ T[3])
+    torch.testing.assert_close(after[4], C1 @ T[4])  # after the newest keyframe: its correction alone
+    for k, s in ((1, 1 / 3), (2, 2 / 3)):  # a third and two thirds of the way from keyframe 0 to keyframe 1
+        torch.testing.assert_close(after[k], interpolate_pose(T[k], C1 @ T[k], s))
+    # No step at keyframe 1: the frame before it has moved most of the way with it.
+    step_before = (after[2][:3, 3] - T[2][:3, 3]).norm()
+    assert (C1 @ T[2])[:3, 3].sub(T[2][:3, 3]).norm() * 0.6 < step_before
+    state.set_poses(before)
+    torch.testing.assert_close(state.poses(), before)
+    with pytest.raises(ValueError, match="poses for 5 frames"):
+        state.set_poses(before[:4])
+
+
 # ----------------------------------------------------------------------------- robustness
 
 

@@ -51,7 +51,7 @@ from mipslam.datasets.base import (
 )
 from mipslam.errors import ConfigError, DatasetError
 from mipslam.io.tum import read_tum_trajectory as read_trajectory_file
-from mipslam.geometry import se3_from_rt, so3_exp, so3_log
+from mipslam.geometry import interpolate_pose
 
 logger = logging.getLogger(__name__)
 
@@ -166,17 +166,6 @@ def poses_at_times(
             out[k] = gt_T_wc[before if after is None else after]
             valid[k] = True
     return out, valid
-
-
-def interpolate_pose(T_a: torch.Tensor, T_b: torch.Tensor, weight: float) -> torch.Tensor:
-    """Pose a fraction ``weight`` of the way from T_a to T_b.  [4, 4], [4, 4] -> [4, 4]
-
-    Translation linear, rotation ``R_a exp(weight * log(R_a^T R_b))`` (SLERP).
-    """
-    R_a, R_b = T_a[:3, :3], T_b[:3, :3]
-    R = R_a @ so3_exp(weight * so3_log(R_a.transpose(0, 1) @ R_b))
-    t = (1.0 - weight) * T_a[:3, 3] + weight * T_b[:3, 3]
-    return se3_from_rt(R, t)
 
 
 def resolve_tum_camera(cfg: DatasetConfig, root: Path, rgb_list: Path) -> tuple[tuple[float, float, float, float], str]:

@@ -624,12 +624,13 @@ def correct_map(closer: LoopCloser, mapper: Mapper, state: "SLAMState", frames: 
 
     before = measure(lambda k: state.keyframe_record(k).T_wc)
     poses_only = measure(lambda k: step.corrected_T_wc[k]) if diagnostics else None
-    T_wc_old = state.keyframe_poses()
+    T_wc_old, poses_old = state.keyframe_poses(), state.poses()
     moved = state.correct_keyframe_poses(step.corrected_T_wc)
     moved_only = measure(lambda k: state.keyframe_record(k).T_wc)
     entry = {"gaussians_moved": moved, "psnr_keyframes": check, "psnr_before_db": before, "psnr_moved_db": moved_only}
     if not closer.keeps_correction(before, moved_only):
-        state.correct_keyframe_poses(T_wc_old)
+        state.correct_keyframe_poses(T_wc_old)  # the Gaussians back with their anchors
+        state.set_poses(poses_old)  # every frame's pose back exactly
         state.loop = closer.without_loop_edges(state.loop, step.optimisation.new_loop_edges)
         logger.info("loop correction at keyframe %d undone: the moved map renders keyframes %s at %.2f dB, %.2f dB "
                     "before", step.optimisation.query_keyframe, check, sum(moved_only) / len(moved_only),
