@@ -521,6 +521,10 @@ def _format_metrics(metrics: dict) -> str:
     rpe_t, rpe_r = trajectory.get("rpe_translation"), trajectory.get("rpe_rotation")
     if rpe_t and rpe_r:
         lines.append(f"RPE {rpe_t['rmse'] * 100:.3f} cm, {rpe_r['rmse']:.3f} deg per step")
+    path = trajectory.get("path_length")
+    if path and path.get("ratio") is not None:
+        lines.append(f"path length {path['estimate'] * 100:.1f} cm against {path['ground_truth'] * 100:.1f} cm "
+                     f"of ground truth (x{path['ratio']:.2f})")
     render = metrics.get("render")
     if render:
         if "unavailable" in render:

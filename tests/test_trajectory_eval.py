@@ -185,6 +185,23 @@ def test_identical_trajectories_have_zero_error():
         assert metrics.alignment.scale == pytest.approx(1.0, abs=1e-12)
 
 
+def test_path_length_of_estimate_and_ground_truth():
+    gt = make_trajectory(90, seed=4)
+    steps = np.linalg.norm(np.diff(gt.T_wc[:, :3, 3], axis=0), axis=1)
+    same = evaluate_trajectory(gt, gt)
+    assert same.path_length_gt_m == pytest.approx(steps.sum(), rel=1e-12)
+    assert same.path_length_est_m == pytest.approx(same.path_length_gt_m, rel=1e-9)
+    assert same.to_dict()["path_length"]["ratio"] == pytest.approx(1.0, rel=1e-9)
+    # Jitter of 1 cm per pose lengthens the estimate's path, and a rigid motion of it changes nothing.
+    noisy = with_position_noise(gt, 0.01, seed=5)
+    jittery = evaluate_trajectory(gt, noisy)
+    moved = evaluate_trajectory(gt, apply_similarity(similarity([0.3, -1.2, 2.0], [4.0, -2.0, 0.5]), noisy))
+    assert jittery.path_length_est_m > 1.2 * jittery.path_length_gt_m
+    assert moved.path_length_est_m == pytest.approx(jittery.path_length_est_m, rel=1e-9)
+    # Only matched poses count: a ground truth at twice the rate is walked at the estimate's poses.
+    assert evaluate_trajectory(gt, Trajectory(gt.timestamps[::2], gt.T_wc[::2])).path_length_gt_m < steps.sum()
+
+
 def test_ate_invariant_to_rigid_transform_of_estimate():
     gt = make_trajectory(80, seed=2)
     noisy = with_position_noise(gt, 0.01, seed=3)

@@ -546,6 +546,13 @@ def _html(run: RunFolder, main: dict | None, timings: dict | None, loops_data: A
     return "\n".join(parts)
 
 
+def _path_text(path: dict) -> str:
+    """The estimate's path length against the ground truth's (metrics.json ``trajectory.path_length``)."""
+    if path.get("ratio") is None:
+        return "-"
+    return f"{path['estimate'] * 100:.1f} cm against {path['ground_truth'] * 100:.1f} cm (x{path['ratio']:.2f})"
+
+
 def _main_html(metrics: dict, timings: dict | None, loops_data: Any, images: dict[str, Path]) -> list[str]:
     esc = _esc
     trajectory = metrics.get("trajectory", {})
@@ -559,6 +566,7 @@ def _main_html(metrics: dict, timings: dict | None, loops_data: Any, images: dic
         ("ATE RMSE", _ate_text(trajectory)),
         ("RPE per frame", f"{_fmt(rpe_t.get('rmse') and rpe_t['rmse'] * 100, '.2f', ' cm')}, "
                           f"{_fmt(rpe_r.get('rmse'), '.3f', ' deg')}"),
+        ("path length", _path_text(trajectory.get("path_length") or {})),
         ("keyframes / Gaussians", f"{metrics.get('keyframes')} / {metrics.get('gaussians')}"),
         ("tracking failures", str(metrics.get("tracking_failures", {}).get("count", 0))),
         ("loop closures", loop_text(loops_data)),

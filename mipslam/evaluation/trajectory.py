@@ -18,6 +18,9 @@ Protocol (the same as ``evo_ape tum GT EST -a --t_max_diff 0.02`` and ``evo_rpe 
    (and aligned) poses: ``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)`` with Q ground truth, P estimate;
    translation ``|t(E)|`` in metres, rotation ``angle(R(E))`` in degrees (Sturm et al., IROS 2012).
    RPE does not change under an SE(3) alignment; Sim(3) rescales the estimate's translations.
+5. Path length: ``sum_i |p_i+1 - p_i|`` over the matched poses, of the aligned estimate and of the
+   ground truth (evo_traj's ``path length``). Jitter and jumps (a loop correction's step) lengthen the
+   estimate's path; ATE barely sees them when they are small.
 
 Poses are camera-to-world ``T_wc`` (DESIGN.md). Everything is float64 numpy.
 """
@@ -243,6 +246,11 @@ def _inverse_times(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
     return out
 
 
+def path_length(positions: np.ndarray) -> float:
+    """Summed distance between consecutive positions [N, 3] (metres)."""
+    return float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum()) if len(positions) > 1 else 0.0
+
+
 def rpe_pairs(num_poses: int, delta: int) -> tuple[np.ndarray, np.ndarray]:
     """evo's consecutive pairs for ``--delta_unit f``: (0, d), (d, 2d), ...  -> (first [K], second [K])"""
     starts = np.arange(0, num_poses, delta, dtype=np.int64)
@@ -272,6 +280,8 @@ class TrajectoryMetrics:
     rpe_translation (metres), rpe_rotation (degrees): over ``rpe_delta`` matched frames
     ate_errors: per matched pose, metres                     # [M]
     matched_est_timestamps, matched_gt_timestamps: seconds    # [M] each
+    path_length_est_m, path_length_gt_m: summed distance between consecutive matched positions, the estimate
+        after alignment (evo_traj's path length); an estimate much longer than the ground truth jitters or jumps
     """
 
     ate: ErrorStatistics
@@ -287,6 +297,8 @@ class TrajectoryMetrics:
     ate_errors: np.ndarray
     matched_est_timestamps: np.ndarray
     matched_gt_timestamps: np.ndarray
+    path_length_est_m: float = 0.0
+    path_length_gt_m: float = 0.0
 
     @property
     def num_matched(self) -> int:
@@ -348,6 +360,14 @@ class TrajectoryMetrics:
             "ate": self.ate.to_dict(),
             "rpe_translation": self.rpe_translation.to_dict(),
             "rpe_rotation": self.rpe_rotation.to_dict(),
+            "path_length": {
+                "unit": "m",
+                "estimate": self.path_length_est_m,
+                "ground_truth": self.path_length_gt_m,
+                "ratio": (self.path_length_est_m / self.path_length_gt_m) if self.path_length_gt_m > 0 else None,
+                "meaning": "summed distance between consecutive matched positions, the estimate after alignment "
+                           "(evo_traj's path length); a ratio well above 1: the estimate jitters or jumps",
+            },
         }
 
 
@@ -434,6 +454,8 @@ def evaluate_trajectory(
         ate_errors=ate_errors,
         matched_est_timestamps=est.timestamps[matches.est_indices],
         matched_gt_timestamps=gt.timestamps[matches.gt_indices],
+        path_length_est_m=path_length(est_aligned[:, :3, 3]),
+        path_length_gt_m=path_length(gt_matched[:, :3, 3]),
     )
     logger.debug(
         "ATE RMSE %.6f m over %d matched poses (%s alignment, %s association); RPE %.6f m / %.4f deg",
