@@ -8,6 +8,7 @@ import re
 import shlex
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from mipslam.bench.scenarios import SCENARIOS, load_scenario, run_scenario, smoke_options
@@ -167,3 +168,21 @@ def test_sequence_scenarios_read_a_folder_with_its_own_kinds_config(tmp_path):
     assert sequence_config("", [f"dataset.path={tum}", f"dataset.path={replica}"]) == str(CONFIGS / "replica.yaml")
     assert sequence_config("", []) == str(CONFIGS / "tum.yaml")  # no folder: the real-data default
     assert sequence_config("mine.yaml", [f"dataset.path={synth}"]) == "mine.yaml"  # an explicit config wins
+
+
+def test_loop_edges_reads_the_ground_truth_shifted_in_time(tmp_path):
+    from types import SimpleNamespace
+
+    from mipslam.bench.scenarios.loop_edges import _shifted_ground_truth
+
+    # A camera sliding along x at 1 m/s, sampled every 10 ms; frames at 0.30 s and 0.50 s.
+    lines = [f"{0.01 * k:.2f} {0.01 * k:.2f} 0 0 0 0 0 1" for k in range(101)]
+    (tmp_path / "groundtruth.txt").write_text("\n".join(lines) + "\n")
+    config = SimpleNamespace(dataset=SimpleNamespace(kind="tum", path=str(tmp_path), association_tolerance_s=0.02))
+    T_wc, valid = _shifted_ground_truth(config, np.array([0.30, 0.50]), 0.05)
+    assert valid.all()
+    # Stamps 50 ms later: the pose stamped 0.30 s is the one recorded at 0.25 s.
+    np.testing.assert_allclose(T_wc[:, 0, 3].numpy(), [0.25, 0.45], atol=1e-9)
+    synthetic = SimpleNamespace(dataset=SimpleNamespace(kind="synthetic", path=str(tmp_path), association_tolerance_s=0.02))
+    with pytest.raises(MipslamError, match="read as synthetic"):
+        _shifted_ground_truth(synthetic, np.array([0.3]), 0.05)

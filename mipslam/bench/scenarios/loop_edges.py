@@ -11,6 +11,8 @@ deserve.
 
     mipslam bench --scenario loop_edges --set dataset.path=../shared/data/tum_fr1_rpy_300
 
+``loop_edges.gt_time_shift_s=S`` adds S seconds to a TUM folder's ground-truth stamps before they are
+interpolated at the frames' times: an error that shrinks at some shift belongs to the ground truth's timing.
 ``loop_edges.config`` is the sequence's config (default: configs/<kind>.yaml for the ``dataset.path`` folder's kind, as ``mipslam bench SEQUENCE`` picks it, else configs/tum.yaml); config keys (``--set loop.KEY=...``)
 override it; ``loop_edges.synth_frames=N`` runs on a data_synth loop of N frames generated into OUT instead.
 """
@@ -47,6 +49,9 @@ class Options:
     seed: int = 0  # of the perturbations
     synth_frames: int = 0  # > 0: a data_synth loop of this many frames (OUT/sequence) instead of the config's
     synth_size: str = "160x120"  # WIDTHxHEIGHT of that sequence
+    # seconds added to the ground truth's timestamps before it is interpolated at the frames' times (TUM layout):
+    # an error that shrinks at some shift is the ground truth's timing, not the registration's
+    gt_time_shift_s: float = 0.0
     config_overrides: tuple[str, ...] = ()  # config KEY=VALUE, e.g. dataset.path=...
 
 
@@ -69,6 +74,21 @@ def _stats(values: list[float]) -> tuple[float, float]:
     return (float(np.median(values)), float(np.percentile(values, 90))) if values else (math.nan, math.nan)
 
 
+def _shifted_ground_truth(config, frame_times: np.ndarray, shift_s: float) -> tuple[torch.Tensor, np.ndarray]:
+    """The TUM folder's groundtruth.txt with ``shift_s`` added to its stamps, at ``frame_times`` [N] (seconds).
+    -> (T_wc [N, 4, 4] float64, valid [N] bool)"""
+    from mipslam.datasets.tum import poses_at_times, read_ground_truth
+
+    path = Path(config.dataset.path).expanduser() / "groundtruth.txt"
+    if config.dataset.kind != "tum" or not path.is_file():
+        raise MipslamError(f"loop_edges.gt_time_shift_s shifts the groundtruth.txt of a sequence read as TUM "
+                           f"(dataset.kind=tum); {config.dataset.path} is read as {config.dataset.kind}"
+                           f"{'' if path.is_file() else ' and has no groundtruth.txt'}: leave the shift at 0 there")
+    gt_times, gt_poses = read_ground_truth(path)
+    return poses_at_times(gt_times + shift_s, gt_poses, np.asarray(frame_times, dtype=np.float64),
+                          config.dataset.association_tolerance_s)
+
+
 def run(options: Options, out_dir: Path) -> ScenarioResult:
     if not options.gaps or min(options.gaps) < 1 or options.first_every < 1:
         raise MipslamError("loop_edges.gaps must be positive frame counts and loop_edges.first_every >= 1")
@@ -79,15 +99,18 @@ def run(options: Options, out_dir: Path) -> ScenarioResult:
     sequence = make_sequence(config.dataset)
     if sequence.gt_T_wc is None:
         raise MipslamError(f"{config.dataset.path}: the sequence has no ground truth; loop_edges needs it")
+    gt_T_wc, gt_valid = sequence.gt_T_wc, sequence.gt_valid
+    if options.gt_time_shift_s != 0:
+        gt_T_wc, gt_valid = _shifted_ground_truth(config, sequence.timestamps, options.gt_time_shift_s)
     registration = registration_options(config.loop)
     generator = torch.Generator().manual_seed(options.seed)
     sigma = torch.tensor([options.perturb_m] * 3 + [math.radians(options.perturb_deg)] * 3, dtype=torch.float64)
     pairs = [(i, i + gap) for i in range(0, len(sequence), options.first_every) for gap in options.gaps
-             if i + gap < len(sequence) and bool(sequence.gt_valid[i]) and bool(sequence.gt_valid[i + gap])]
+             if i + gap < len(sequence) and bool(gt_valid[i]) and bool(gt_valid[i + gap])]
     errors_t, errors_r, claimed_t, claimed_r = [], [], [], []
     for i, j in pairs:
         frame_i, frame_j = sequence[i], sequence[j]
-        T_gt = se3_inverse(sequence.gt_T_wc[i].to(torch.float64)) @ sequence.gt_T_wc[j].to(torch.float64)
+        T_gt = se3_inverse(gt_T_wc[i].to(torch.float64)) @ gt_T_wc[j].to(torch.float64)
         start = se3_exp(torch.randn(6, generator=generator, dtype=torch.float64) * sigma) @ T_gt
         result = register_rgbd_pair(frame_i.color, frame_i.depth, frame_j.color, frame_j.depth, frame_i.intrinsics,
                                     start, registration)
