@@ -9,7 +9,8 @@ then repeats the last motion) and milliseconds per frame.
     mipslam bench --scenario frontend --set dataset.path=../shared/data/tum_fr1_rpy_300 \
         --set frontend.methods=orb_pnp,cv_rgbd,o3d_rgbd
 
-``frontend.config`` is the sequence's config (default: configs/<kind>.yaml for the ``dataset.path`` folder's kind, as ``mipslam bench SEQUENCE`` picks it, else configs/tum.yaml), config keys (``--set dataset.path=...``)
+``frontend.config`` is the sequence's config (default: configs/<kind>.yaml for the ``dataset.path`` folder's
+kind, as ``mipslam bench SEQUENCE`` picks it, else configs/tum.yaml), config keys (``--set dataset.path=...``)
 override it; ``frontend.synth_frames=N`` runs on a data_synth sequence of N frames generated into OUT instead.
 """
 from __future__ import annotations

@@ -13,7 +13,8 @@ deserve.
 
 ``loop_edges.gt_time_shift_s=S`` adds S seconds to a TUM folder's ground-truth stamps before they are
 interpolated at the frames' times: an error that shrinks at some shift belongs to the ground truth's timing.
-``loop_edges.config`` is the sequence's config (default: configs/<kind>.yaml for the ``dataset.path`` folder's kind, as ``mipslam bench SEQUENCE`` picks it, else configs/tum.yaml); config keys (``--set loop.KEY=...``)
+``loop_edges.config`` is the sequence's config (default: configs/<kind>.yaml for the ``dataset.path`` folder's
+kind, as ``mipslam bench SEQUENCE`` picks it, else configs/tum.yaml); config keys (``--set loop.KEY=...``)
 override it; ``loop_edges.synth_frames=N`` runs on a data_synth loop of N frames generated into OUT instead.
 """
 from __future__ import annotations
@@ -29,7 +30,7 @@ import torch
 from mipslam.bench.record import write_benchmark
 from mipslam.bench.scenarios import RECORD_NAME, ScenarioResult
 from mipslam.bench.scenarios.checkout import CONFIGS, parameters, sequence_config, synth_sequence
-from mipslam.config import load_config
+from mipslam.config import Config, load_config
 from mipslam.datasets import make_sequence
 from mipslam.errors import MipslamError
 from mipslam.geometry.se3 import rotation_angle, se3_exp, se3_inverse
@@ -74,7 +75,7 @@ def _stats(values: list[float]) -> tuple[float, float]:
     return (float(np.median(values)), float(np.percentile(values, 90))) if values else (math.nan, math.nan)
 
 
-def _shifted_ground_truth(config, frame_times: np.ndarray, shift_s: float) -> tuple[torch.Tensor, np.ndarray]:
+def _shifted_ground_truth(config: Config, frame_times: np.ndarray, shift_s: float) -> tuple[torch.Tensor, np.ndarray]:
     """The TUM folder's groundtruth.txt with ``shift_s`` added to its stamps, at ``frame_times`` [N] (seconds).
     -> (T_wc [N, 4, 4] float64, valid [N] bool)"""
     from mipslam.datasets.tum import poses_at_times, read_ground_truth
