@@ -256,12 +256,15 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
     color_dir.mkdir(exist_ok=True)
     depth_dir.mkdir(exist_ok=True)
     color_names, depth_names = [], []
+    moving = (motion_blur > 0 and blur_samples > 1) or rolling_shutter > 0
     for i, T_wc in enumerate(poses):
-        color, depth = render_view(scene, T_wc, intrinsics, supersample=supersample)
-        if (motion_blur > 0 and blur_samples > 1) or rolling_shutter > 0:
+        depth = None
+        if moving:
             color = _moving_camera_color(scene, poses, i, intrinsics, supersample, motion_blur, blur_samples,
                                          rolling_shutter)
-        if depth_delay > 0:
+        else:
+            color, depth = render_view(scene, T_wc, intrinsics, supersample=supersample)
+        if depth is None or depth_delay > 0:  # depth reads pixel-centre rays alone: the same at any supersampling
             depth = render_view(scene, pose_at(poses, i, depth_delay), intrinsics, supersample=1)[1]
         if sensor.exposure_jitter > 0:
             color = apply_exposure(color, *exposure[i])

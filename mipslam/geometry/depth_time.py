@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import torch
 
-from mipslam.geometry.camera import unproject
+from mipslam.geometry.camera import pixel_grid, project, unproject
 from mipslam.geometry.se3 import se3_exp, se3_inverse, se3_log
 
 # A frame further than this from the colour instant (seconds) is not moved: a pairing that far apart is not
@@ -54,20 +54,16 @@ def depth_at_colour_time(depth: torch.Tensor, K: torch.Tensor, T_cd: torch.Tenso
     H, W = depth.shape
     dev, dtype = depth.device, torch.float64
     K = K.to(dev, dtype)
-    T_dc = se3_inverse(T_cd.to(dev, dtype))
     T_cd = T_cd.to(dev, dtype)
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    v, u = torch.meshgrid(torch.arange(H, device=dev, dtype=dtype), torch.arange(W, device=dev, dtype=dtype),
-                          indexing="ij")
-    ray = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], -1)  # [H, W, 3], z = 1
+    T_dc = se3_inverse(T_cd)
+    uv = pixel_grid(H, W, dtype=dtype, device=dev)  # [H, W, 2] colour pixels
     source = depth.to(dtype)
     z = source.clone()
     for _ in range(WARP_ITERATIONS):
-        X_d = (ray * z[..., None]) @ T_dc[:3, :3].T + T_dc[:3, 3]  # colour-pixel ray point in the depth camera
-        zd = X_d[..., 2].clamp_min(1e-6)
-        col = torch.round(X_d[..., 0] / zd * fx + cx)
-        row = torch.round(X_d[..., 1] / zd * fy + cy)
-        inside = (col >= 0) & (col <= W - 1) & (row >= 0) & (row <= H - 1) & (X_d[..., 2] > 0)
+        X_d = unproject(uv, z, K) @ T_dc[:3, :3].T + T_dc[:3, 3]  # colour-pixel ray point in the depth camera
+        uv_d, z_d = project(X_d, K)
+        col, row = torch.round(uv_d[..., 0]), torch.round(uv_d[..., 1])
+        inside = (col >= 0) & (col <= W - 1) & (row >= 0) & (row <= H - 1) & (z_d > 0)
         read = source[row.clamp(0, H - 1).long(), col.clamp(0, W - 1).long()]
         read = torch.where(inside, read, torch.zeros_like(read))
         # the read depth is the depth camera's; its point seen from the colour camera gives the next z

@@ -59,9 +59,9 @@ def sequence_config(config: str, overrides: Sequence[str]) -> str:
     folder = Path(paths[-1]).expanduser() if paths else None
     if folder is None or not folder.is_dir():
         return str(CONFIGS / "tum.yaml")
-    from mipslam.bench.spec import detect_sequence_kind
+    from mipslam.bench.spec import resolve_target
 
-    return str(CONFIGS / f"{detect_sequence_kind(folder)}.yaml")
+    return str(resolve_target(folder, CONFIGS).config_path)
 
 
 def synth_sequence(out_dir: Path, size: str, frames: int, *, trajectory: str = "loop", supersample: int = 2) -> Path:
