@@ -98,6 +98,10 @@ class DatasetConfig:
     # depth nearest) are undistorted at the dataset boundary with the same fx..cy. Unset or [] = none.
     distortion: tuple[float, ...] | None = None
     association_tolerance_s: float = 0.02  # TUM rgb-depth-groundtruth association
+    # Seconds a rolling-shutter colour camera takes to read its rows, top to bottom (0 = a global shutter); each
+    # row is moved to the frame's instant with the tracked rotation (mipslam.sensor_sync; docs/tracking.md,
+    # "Rolling shutter"). The frame's timestamp is taken as its middle row's instant.
+    rolling_shutter_readout_s: float = 0.0
     realtime: bool = False  # realsense_bag: play at the recorded rate, dropping frames (false: every frame)
 
     def __post_init__(self):
@@ -112,6 +116,8 @@ class DatasetConfig:
             value = getattr(self, key)
             _check(value is None or value >= 1, f"dataset.{key}", "must be >= 1")
         _check(self.association_tolerance_s > 0, "dataset.association_tolerance_s", "must be positive")
+        _check(0 <= self.rolling_shutter_readout_s <= 0.1, "dataset.rolling_shutter_readout_s",
+               "must be in [0, 0.1] seconds (0 = a global shutter)")
         _check(self.distortion is None or len(self.distortion) in (0, 4, 5), "dataset.distortion",
                "must be [] or OpenCV's [k1, k2, p1, p2] or [k1, k2, p1, p2, k3]")
         _check(self.distortion is None or all(math.isfinite(v) for v in self.distortion), "dataset.distortion",
@@ -212,7 +218,7 @@ class TrackingConfig:
     # loss then judges that pose against the motion model's (Tracker.best_start). Bounded by relocalise_max_*.
     dense_start: bool = False
     # Move each depth image to its colour image's instant with the motion model, where the dataset gives the two
-    # their own timestamps (TUM's rgb.txt and depth.txt; mipslam.depth_sync). It needs timestamps of the capture:
+    # their own timestamps (TUM's rgb.txt and depth.txt; mipslam.sensor_sync). It needs timestamps of the capture:
     # data_synth on fr1_rpy's motion with depth 8 ms late 1.92 / 1.99 -> 0.98 / 1.25 cm (seeds 0 / 1), but on
     # fr1_rpy itself, whose timestamps are the driver's, moving the depth by them is worse, even with the
     # ground-truth motion (docs/tracking.md, "Colour and depth at different instants"), so it is off.

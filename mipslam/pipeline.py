@@ -22,8 +22,6 @@ import torch
 
 from mipslam.config import Config, KeyframeConfig
 from mipslam.datasets import FrameCache, RGBDSequence
-from mipslam.depth_sync import (predicted_depth_motion, recorded_depth_motion, tracked_depth_motion,
-                                with_depth_at_colour_time)
 from mipslam.frontend import Frontend
 from mipslam.io.run_folder import write_json_atomic
 from mipslam.keyframes import insert_keyframe, keyframe_decision
@@ -31,6 +29,7 @@ from mipslam.loop.closer import LoopCloser, VerificationHook, close_loops
 from mipslam.mapping import Mapper, map_keyframe, refine_map
 from mipslam.observer import Observer
 from mipslam.run_control import FrameLoop, PreparedRun, RunSummary, prepare_run, resolve_device, write_checkpoint
+from mipslam.sensor_sync import SensorTiming, predicted_velocity, recorded_velocity, synchronised, tracked_velocity
 from mipslam.state import FrameRecord, SLAMState
 from mipslam.tracking import Tracker, TrackingResult, track_frame
 from mipslam.types import Frame
@@ -58,7 +57,8 @@ class PipelineHooks:
 @dataclass
 class Stages:
     """The stages of one run, each built from its own config section (``loop`` is None when disabled), the
-    frames they read, and the map's frame (``T_wc_first`` [4, 4] float64: the first frame's pose)."""
+    frames they read, the map's frame (``T_wc_first`` [4, 4] float64: the first frame's pose) and what of the
+    frames' timing the run undoes (``timing``, :mod:`mipslam.sensor_sync`)."""
 
     tracker: Tracker
     mapper: Mapper
@@ -69,6 +69,7 @@ class Stages:
     observer: Observer = field(default_factory=Observer)
     hooks: PipelineHooks = field(default_factory=PipelineHooks)
     frontend: Frontend | None = None
+    timing: SensorTiming = SensorTiming()
 
     @classmethod
     def build(cls, config: Config, sequence: RGBDSequence, device: torch.device, hooks: PipelineHooks | None = None,
@@ -82,8 +83,9 @@ class Stages:
                             kept_bytes=config.run.keyframe_cache_mib * 2**20)
         observer.attach(frames)
         frontend = Frontend(config.frontend) if config.frontend.method != "none" else None
+        timing = SensorTiming(config.tracking.align_depth_time, config.dataset.rolling_shutter_readout_s)
         return cls(Tracker(config.tracking, config.render), Mapper(config.mapping, config.render), config.keyframes,
-                   frames, first_pose(sequence), loop, observer, hooks, frontend)
+                   frames, first_pose(sequence), loop, observer, hooks, frontend, timing)
 
 
 # ----------------------------------------------------------------------------- one frame
@@ -95,11 +97,11 @@ def process_frame(stages: Stages, state: SLAMState, index: int, timestamp: float
         frame = stages.frames[index]
     stages.frames.prefetch(index + 1)
     with observe("tracking"):
-        tracked = track_frame(stages.tracker, state, depth_for_tracking(stages, state, frame), stages.frames,
+        tracked = track_frame(stages.tracker, state, frame_for_tracking(stages, state, frame), stages.frames,
                               stages.T_wc_first, stages.frontend)
         if stages.hooks.after_tracking is not None:
             tracked = stages.hooks.after_tracking(index, tracked, state)
-        frame = depth_after_tracking(stages, state, frame, tracked)
+        frame = frame_after_tracking(stages, state, frame, tracked)
     with observe("keyframe"):
         is_keyframe = tracked.ok and keyframe_decision(stages.keyframes, state, stages.frames, frame,
                                                        tracked.T_wc, tracked.map_coverage).is_keyframe
@@ -114,19 +116,19 @@ def process_frame(stages: Stages, state: SLAMState, index: int, timestamp: float
     return state.end_frame(tracked, stages.tracker.config.running_loss_momentum)
 
 
-def depth_for_tracking(stages: Stages, state: SLAMState, frame: Frame) -> Frame:
-    """``frame`` with its depth at the colour instant by the motion model, for tracking (:mod:`mipslam.depth_sync`)."""
-    if not stages.tracker.config.align_depth_time:
+def frame_for_tracking(stages: Stages, state: SLAMState, frame: Frame) -> Frame:
+    """``frame`` at its colour instant by the motion model, for tracking (:mod:`mipslam.sensor_sync`)."""
+    if not stages.timing.moves(frame):
         return frame
-    return with_depth_at_colour_time(frame, predicted_depth_motion(state, frame))
+    return synchronised(frame, predicted_velocity(state, frame), stages.timing)
 
 
-def depth_after_tracking(stages: Stages, state: SLAMState, frame: Frame, tracked: TrackingResult) -> Frame:
-    """``frame`` with its depth at the colour instant by its tracked motion, cached for the later stages."""
-    if not stages.tracker.config.align_depth_time:
+def frame_after_tracking(stages: Stages, state: SLAMState, frame: Frame, tracked: TrackingResult) -> Frame:
+    """``frame`` at its colour instant by its tracked motion, cached for the later stages."""
+    if not stages.timing.moves(frame):
         return frame
     previous = state.frames[-1] if state.frames else None
-    moved = with_depth_at_colour_time(frame, tracked_depth_motion(previous, frame, tracked.T_wc, tracked.ok))
+    moved = synchronised(frame, tracked_velocity(previous, frame, tracked.T_wc, tracked.ok), stages.timing)
     if moved is not frame:
         stages.frames.put(moved)
     return moved
@@ -145,8 +147,8 @@ def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evalu
     run = prepare_run(config, run_dir, resume=resume, observer=observer)
     state, observer = run.state, run.observer
     stages = Stages.build(config, run.sequence, run.device, hooks, observer)
-    if config.tracking.align_depth_time:  # old keyframes read again get the depth their tracking gave them
-        stages.frames.adjust = lambda frame: with_depth_at_colour_time(frame, recorded_depth_motion(state, frame))
+    if stages.timing.active:  # old keyframes read again get the images their tracking gave them
+        stages.frames.adjust = lambda frame: synchronised(frame, recorded_velocity(state, frame), stages.timing)
     started, start_frame = time.perf_counter(), state.next_frame
     try:
         with FrameLoop(run, config) as loop:

@@ -74,31 +74,39 @@ def _frame(index: int, timestamp: float, offset: float):
 def test_the_run_moves_depth_with_its_own_tracked_motion():
     from types import SimpleNamespace
 
-    from mipslam.depth_sync import (predicted_depth_motion, recorded_depth_motion, tracked_depth_motion,
-                                    with_depth_at_colour_time)
+    from mipslam.sensor_sync import (SensorTiming, predicted_velocity, recorded_velocity, synchronised,
+                                     tracked_velocity)
     step = se3_exp(torch.tensor([0.03, 0.0, 0.0, 0.0, 0.02, 0.0], dtype=torch.float64))
     poses = [torch.eye(4, dtype=torch.float64)]
     for _ in range(2):
         poses.append(poses[-1] @ step)
     records = [_record(k, k / 30, poses[k]) for k in range(3)]
     frame = _frame(2, 2 / 30, 0.5 / 30)
+    timing = SensorTiming(align_depth_time=True)
     # before tracking: the last interval (frames 0 -> 1); after: the frame's own (1 -> 2); read again: the same
     state = SimpleNamespace(frames=records[:2])
-    torch.testing.assert_close(predicted_depth_motion(state, frame), depth_camera_motion(poses[0], poses[1], 1 / 30, 0.5 / 30))
-    after = tracked_depth_motion(records[1], frame, poses[2], True)
-    torch.testing.assert_close(after @ after, step)
+    predicted = predicted_velocity(state, frame)
+    torch.testing.assert_close(se3_exp(predicted * (0.5 / 30)), depth_camera_motion(poses[0], poses[1], 1 / 30, 0.5 / 30))
+    after = tracked_velocity(records[1], frame, poses[2], True)
+    torch.testing.assert_close(se3_exp(after / 30), step)
     state.frames = records
-    again = recorded_depth_motion(state, frame)
+    again = recorded_velocity(state, frame)
     assert torch.equal(again, after)
-    moved = with_depth_at_colour_time(frame, after)
-    assert torch.equal(moved.depth, with_depth_at_colour_time(frame, again).depth)
+    moved = synchronised(frame, after, timing)
+    assert torch.equal(moved.depth, synchronised(frame, again, timing).depth)
     assert not torch.equal(moved.depth, frame.depth) and moved.depth_time_offset == frame.depth_time_offset
-    # nothing to move: no offset, the first frame, a lost previous frame, a frame not tracked yet
-    assert with_depth_at_colour_time(frame, None) is frame
-    assert recorded_depth_motion(state, _frame(2, 2 / 30, 0.0)) is None
-    assert recorded_depth_motion(state, _frame(0, 0.0, 0.01)) is None
-    assert tracked_depth_motion(_record(1, 1 / 30, poses[1], "lost"), frame, poses[2], True) is None
-    assert recorded_depth_motion(state, _frame(3, 3 / 30, 0.01)) is None
+    assert torch.equal(moved.color, frame.color)  # a global shutter: the colour stays
+    # nothing to move: no velocity, no offset, alignment off, an offset beyond a stream's
+    assert synchronised(frame, None, timing) is frame
+    no_offset = _frame(2, 2 / 30, 0.0)
+    assert synchronised(no_offset, after, timing) is no_offset
+    assert synchronised(frame, after, SensorTiming()) is frame
+    beyond = _frame(2, 2 / 30, 2 * MAX_OFFSET_S)
+    assert torch.equal(synchronised(beyond, after, timing).depth, beyond.depth)
+    # no velocity: the first frame, a lost previous frame, a frame not tracked yet
+    assert recorded_velocity(state, _frame(0, 0.0, 0.01)) is None
+    assert tracked_velocity(_record(1, 1 / 30, poses[1], "lost"), frame, poses[2], True) is None
+    assert recorded_velocity(state, _frame(3, 3 / 30, 0.01)) is None
 
 
 def test_frame_cache_adjusts_frames_read_again_as_they_were_put():

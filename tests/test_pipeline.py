@@ -154,19 +154,20 @@ def test_tracked_poses_survive_a_checkpoint_and_old_checkpoints_fall_back_to_the
         torch.testing.assert_close(frame.T_wc_tracked, frame.T_wc, rtol=0, atol=0)
 
 
-def test_depth_taken_late_is_moved_to_the_colour_instant_and_resumes_exactly(tmp_path):
-    """A TUM-layout sequence whose depth comes 0.4 frame intervals after the colour (data_synth --depth-delay):
-    the run moves each depth image with its tracked motion, the same way again when it resumes."""
+def test_depth_taken_late_and_a_rolling_shutter_are_undone_and_resume_exactly(tmp_path):
+    """A TUM-layout sequence whose depth comes 0.4 frame intervals after the colour (data_synth --depth-delay) and
+    whose colour rows are read over 0.6 of an interval (--rolling-shutter): the run moves each depth image and
+    each colour image's rows with its tracked motion, the same way again when it resumes."""
     import data_synth
 
     sequence = tmp_path / "seq"
     data_synth.generate(sequence, layout="tum", trajectory="loop", width=40, height=30, frames=6, seed=0,
-                        supersample=2, depth_delay=0.4)
+                        supersample=2, depth_delay=0.4, rolling_shutter=0.6)
     full_dir, split_dir, off_dir = tmp_path / "full", tmp_path / "split", tmp_path / "off"
-    on = "tracking.align_depth_time=true"
-    run_slam(tiny_config(sequence, on), full_dir, evaluate=False)
-    run_slam(tiny_config(sequence, on, "dataset.max_frames=4"), split_dir, evaluate=False)
-    run_slam(tiny_config(sequence, on), split_dir, resume=True, evaluate=False)
+    on = ("tracking.align_depth_time=true", f"dataset.rolling_shutter_readout_s={0.6 / 30}")
+    run_slam(tiny_config(sequence, *on), full_dir, evaluate=False)
+    run_slam(tiny_config(sequence, *on, "dataset.max_frames=4"), split_dir, evaluate=False)
+    run_slam(tiny_config(sequence, *on), split_dir, resume=True, evaluate=False)
     full = read_tum_trajectory(full_dir / "traj_est.txt")
     np.testing.assert_allclose(read_tum_trajectory(split_dir / "traj_est.txt").T_wc, full.T_wc, atol=1e-6)
     torch.testing.assert_close(read_map_ply(split_dir / "map.ply").means, read_map_ply(full_dir / "map.ply").means,

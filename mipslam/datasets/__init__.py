@@ -103,7 +103,7 @@ class FrameCache:
     Errors surface when the frame is asked for.
 
     ``adjust``: applied in the caller's thread to every frame read from the sequence before it is cached
-    (the run's depth moved to the colour instant, :mod:`mipslam.depth_sync`); :meth:`put` caches a
+    (the run's depth moved to the colour instant, :mod:`mipslam.sensor_sync`); :meth:`put` caches a
     frame adjusted elsewhere in the cache, the same one ``adjust`` gives when the frame is read again.
     """
 
