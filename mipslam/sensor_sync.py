@@ -101,7 +101,7 @@ def recorded_velocity(state: "SLAMState", frame: Frame) -> torch.Tensor | None:
 def synchronised(frame: Frame, velocity: torch.Tensor | None, timing: SensorTiming) -> Frame:
     """``frame`` with its images moved to its colour instant by ``velocity`` [6] (body frame, m/s and rad/s):
     the depth by its offset where ``timing.align_depth_time`` (offsets beyond MAX_OFFSET_S are not a stream's
-    and stay), the colour rows by ``timing.readout_s``. The frame itself when nothing moves or the velocity is
+    and stay), the colour rows by ``timing.readout_s`` (with the depth at the colour instant). The frame itself when nothing moves or the velocity is
     not known."""
     if velocity is None or not timing.moves(frame):
         return frame
@@ -111,5 +111,6 @@ def synchronised(frame: Frame, velocity: torch.Tensor | None, timing: SensorTimi
     if timing.align_depth_time and offset != 0 and abs(offset) <= MAX_OFFSET_S:
         changes["depth"] = depth_at_colour_time(frame.depth, K, se3_exp(velocity * offset))
     if timing.readout_s > 0:
-        changes["color"] = colour_at_frame_instant(frame.color, K, velocity[3:], timing.readout_s)
+        changes["color"] = colour_at_frame_instant(frame.color, K, velocity, timing.readout_s,
+                                                   changes.get("depth", frame.depth))
     return replace(frame, **changes) if changes else frame

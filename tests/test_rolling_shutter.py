@@ -8,7 +8,7 @@ import torch
 
 from data_synth import default_intrinsics, make_scene, render_view, trajectory_poses
 from mipslam.geometry.rolling_shutter import colour_at_frame_instant, row_times
-from mipslam.geometry.se3 import so3_exp
+from mipslam.geometry.se3 import se3_exp
 from mipslam.types import Intrinsics
 
 
@@ -17,14 +17,13 @@ def _K(intrinsics) -> torch.Tensor:
                         dtype=torch.float64)
 
 
-def _rolling_shutter_render(scene, T_wc: np.ndarray, intrinsics, omega: torch.Tensor, readout_s: float) -> np.ndarray:
-    """Each row rendered on its own at its read-out instant, the camera turning at ``omega`` (rad/s, camera
-    frame): an independent forward model of the shutter the correction undoes."""
+def _rolling_shutter_render(scene, T_wc: np.ndarray, intrinsics, velocity: torch.Tensor, readout_s: float) -> np.ndarray:
+    """Each row rendered on its own at its read-out instant, the camera moving at ``velocity`` [v (m/s), omega
+    (rad/s)] (camera frame): an independent forward model of the shutter the correction undoes."""
     H, W = intrinsics.height, intrinsics.width
     color = np.zeros((H, W, 3), dtype=np.float32)
     for v, dt in enumerate(row_times(H, readout_s).tolist()):
-        T = T_wc.copy()
-        T[:3, :3] = T_wc[:3, :3] @ so3_exp(omega * dt).numpy()
+        T = T_wc @ se3_exp(velocity * dt).numpy()
         row = Intrinsics(intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy - v, W, 1)
         color[v] = render_view(scene, T, row, supersample=2)[0][0]
     return color
@@ -50,27 +49,39 @@ def _blurred(color: torch.Tensor, sigma: float = 1.5) -> torch.Tensor:
 def test_a_rolling_shutter_image_is_moved_to_the_global_shutter_image():
     scene, intrinsics = make_scene(0), default_intrinsics(96, 72)
     T_wc = trajectory_poses("loop", 300)[40]
-    omega = torch.tensor([1.5, -2.5, 1.0], dtype=torch.float64)  # rad/s: about 7 deg over a 0.04 s read-out
     readout = 0.04
-    global_shutter = torch.from_numpy(render_view(scene, T_wc, intrinsics, supersample=2)[0])
-    rolling = torch.from_numpy(_rolling_shutter_render(scene, T_wc, intrinsics, omega, readout))
-    moved = colour_at_frame_instant(rolling, _K(intrinsics), omega, readout)
-    assert moved.shape == rolling.shape and moved.dtype == rolling.dtype and torch.isfinite(moved).all()
+    global_shutter, depth = (torch.from_numpy(a) for a in render_view(scene, T_wc, intrinsics, supersample=2))
+    K = _K(intrinsics)
 
     def error(image):  # away from the border, which repeats where a ray left the image
         return float((_blurred(image) - _blurred(global_shutter))[6:-6, 6:-6].abs().mean())
 
-    before, after = error(rolling), error(moved)
-    assert after < 0.6 * before, (before, after)
-    assert error(colour_at_frame_instant(rolling, _K(intrinsics), -omega, readout)) > before  # the rows' sign
+    # turning: about 7 deg over the read-out
+    turning = torch.tensor([0.0, 0.0, 0.0, 1.5, -2.5, 1.0], dtype=torch.float64)
+    rolling = torch.from_numpy(_rolling_shutter_render(scene, T_wc, intrinsics, turning, readout))
+    moved = colour_at_frame_instant(rolling, K, turning, readout)
+    assert moved.shape == rolling.shape and moved.dtype == rolling.dtype and torch.isfinite(moved).all()
+    assert error(moved) < 0.6 * error(rolling), (error(rolling), error(moved))
+    assert error(colour_at_frame_instant(rolling, K, -turning, readout)) > error(rolling)  # the rows' sign
+    torch.testing.assert_close(colour_at_frame_instant(rolling, K, turning, readout, depth), moved, atol=1e-5, rtol=0)
+    # travelling at 1.5 m/s while turning to keep the view: the two motions' shifts partly cancel, so the
+    # rotation alone over-corrects, and the depth puts the translation back
+    travelling = torch.tensor([1.5, 0.0, 0.0, 0.0, 0.6, 0.0], dtype=torch.float64)
+    rolling = torch.from_numpy(_rolling_shutter_render(scene, T_wc, intrinsics, travelling, readout))
+    with_depth = error(colour_at_frame_instant(rolling, K, travelling, readout, depth))
+    rotation_only = error(colour_at_frame_instant(rolling, K, travelling, readout))
+    assert with_depth < 0.65 * error(rolling) and with_depth < 0.8 * rotation_only, (error(rolling), with_depth, rotation_only)
 
 
 def test_no_read_out_or_no_rotation_keeps_the_image():
     color = torch.rand(12, 16, 3)
     K = torch.tensor([[20.0, 0, 7.5], [0, 20.0, 5.5], [0, 0, 1]], dtype=torch.float64)
-    assert colour_at_frame_instant(color, K, torch.tensor([1.0, 0.0, 0.0]), 0.0) is color
-    still = colour_at_frame_instant(color, K, torch.zeros(3), 0.03)
-    torch.testing.assert_close(still, color, atol=1e-6, rtol=0)
+    assert colour_at_frame_instant(color, K, torch.tensor([0.1, 0.0, 0.0, 1.0, 0.0, 0.0]), 0.0) is color
+    assert colour_at_frame_instant(color, K, torch.zeros(6), 0.03) is color
+    assert colour_at_frame_instant(color, K, torch.tensor([0.1, 0.0, 0.0, 0.0, 0.0, 0.0]), 0.03) is color  # no depth
+    moved_by_depth = colour_at_frame_instant(color, K, torch.tensor([0.1, 0.0, 0.0, 0.0, 0.0, 0.0]), 0.03,
+                                             torch.full((12, 16), 1.0))
+    assert not torch.equal(moved_by_depth, color) and torch.isfinite(moved_by_depth).all()
 
 
 def test_the_run_moves_colour_rows_with_its_tracked_rotation():
@@ -87,7 +98,7 @@ def test_the_run_moves_colour_rows_with_its_tracked_rotation():
     velocity = tracked_velocity(previous, frame, step, True)
     torch.testing.assert_close(velocity[4], torch.tensor(math.radians(2.0) * 30, dtype=torch.float64))
     moved = synchronised(frame, velocity, SensorTiming(readout_s=0.03))
-    expected = colour_at_frame_instant(color, frame.intrinsics.matrix(torch.float64), velocity[3:], 0.03)
+    expected = colour_at_frame_instant(color, frame.intrinsics.matrix(torch.float64), velocity, 0.03, frame.depth)
     assert torch.equal(moved.color, expected) and not torch.equal(moved.color, color)
     assert moved.depth is frame.depth  # no depth offset to undo
     assert synchronised(frame, velocity, SensorTiming()) is frame  # a global shutter
