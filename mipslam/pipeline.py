@@ -98,7 +98,7 @@ def process_frame(stages: Stages, state: SLAMState, index: int, timestamp: float
     stages.frames.prefetch(index + 1)
     with observe("tracking"):
         tracked = track_frame(stages.tracker, state, frame_for_tracking(stages, state, frame), stages.frames,
-                              stages.T_wc_first, stages.frontend)
+                              stages.T_wc_first, stages.frontend, at_start=frame_at_start(stages, state, frame))
         if stages.hooks.after_tracking is not None:
             tracked = stages.hooks.after_tracking(index, tracked, state)
         frame = frame_after_tracking(stages, state, frame, tracked)
@@ -117,10 +117,20 @@ def process_frame(stages: Stages, state: SLAMState, index: int, timestamp: float
 
 
 def frame_for_tracking(stages: Stages, state: SLAMState, frame: Frame) -> Frame:
-    """``frame`` at its colour instant by the motion model, for tracking (:mod:`mipslam.sensor_sync`)."""
+    """``frame`` at its colour instant by the motion model, for tracking's start (:mod:`mipslam.sensor_sync`)."""
     if not stages.timing.moves(frame):
         return frame
     return synchronised(frame, predicted_velocity(state, frame), stages.timing)
+
+
+def frame_at_start(stages: Stages, state: SLAMState, frame: Frame) -> Callable[[Frame, torch.Tensor], Frame] | None:
+    """For tracking's refinement: ``frame`` at its colour instant by the motion from the previous frame to the
+    chosen start pose, a measurement of this frame's own motion where the motion model repeats the last one's
+    (on a camera that shakes back and forth the two differ most)."""
+    if not stages.timing.moves(frame):
+        return None
+    previous = state.frames[-1] if state.frames else None
+    return lambda _, T_wc_start: synchronised(frame, tracked_velocity(previous, frame, T_wc_start, True), stages.timing)
 
 
 def frame_after_tracking(stages: Stages, state: SLAMState, frame: Frame, tracked: TrackingResult) -> Frame:

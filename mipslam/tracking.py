@@ -575,13 +575,15 @@ def initial_result(T_wc: torch.Tensor) -> TrackingResult:
 # ----------------------------------------------------------------------------- the step in the frame loop
 
 def track_frame(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "FrameCache",
-                T_wc_first: torch.Tensor, frontend: Frontend | None = None) -> TrackingResult:
+                T_wc_first: torch.Tensor, frontend: Frontend | None = None,
+                at_start: Callable[[Frame, torch.Tensor], Frame] | None = None) -> TrackingResult:
     """Track ``frame`` against the frozen map of ``state``; the first frame (or any frame while the map is
     empty) takes its pose from ``T_wc_first`` [4, 4] float64 or the start without tracking.
 
     The start: the feature front-end's pose against the newest tracked frame (:func:`frontend_start`) where
     the map renders it better than the motion model's prediction (:meth:`Tracker.best_start`), else the
-    prediction. A frame whose tracking fails is matched to the newest keyframes (:func:`relocalise_keyframes`),
+    prediction. ``at_start(frame, T_wc_start)``, where given, re-times the frame's images with the motion to
+    the start (:mod:`mipslam.sensor_sync`) before the refinement. A frame whose tracking fails is matched to the newest keyframes (:func:`relocalise_keyframes`),
     then aligned to the previous frame (:func:`relocalise`). ``frames[index]`` is an earlier frame. The
     result's ``T_wc`` [4, 4] float64 (camera-to-world) is projected onto SE(3)
     (:func:`~mipslam.geometry.nearest_rigid`).
@@ -610,6 +612,8 @@ def track_frame(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "Fra
                    "taken" if chosen == 1 else "rejected by the render loss")
         log.debug("frame %d: features gave no start (%s); dense RGB-D start %s", frame.index, start.reason, outcome)
     T_wc_start = candidates[chosen]
+    if at_start is not None:
+        frame = at_start(frame, T_wc_start)
     result = tracker.track(detached, frame, T_wc_start, state.running_loss)
     result = relocalise_keyframes(tracker, frontend, state, frame, frames, detached, result)
     result = relocalise(tracker, state, frame, frames, detached, result)

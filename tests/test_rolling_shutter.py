@@ -102,3 +102,26 @@ def test_the_run_moves_colour_rows_with_its_tracked_rotation():
     assert torch.equal(moved.color, expected) and not torch.equal(moved.color, color)
     assert moved.depth is frame.depth  # no depth offset to undo
     assert synchronised(frame, velocity, SensorTiming()) is frame  # a global shutter
+
+
+def test_tracking_refines_on_the_frame_re_timed_by_the_motion_to_its_start():
+    """The motion model repeats the last interval's motion; the refinement's frame is re-timed with the motion
+    from the previous frame to the chosen start, the frame's own."""
+    from types import SimpleNamespace
+
+    from mipslam.geometry.se3 import se3_exp
+    from mipslam.pipeline import frame_at_start
+    from mipslam.sensor_sync import SensorTiming, synchronised, tracked_velocity
+    from mipslam.state import FrameRecord
+    from mipslam.types import Frame
+
+    T0 = torch.eye(4, dtype=torch.float64)
+    previous = FrameRecord(0, 0.0, T0, torch.zeros(2), "ok", 0.0, 0, -1, -1, T_wc_tracked=T0)
+    frame = Frame(1, 1 / 30, torch.rand(12, 16, 3), torch.full((12, 16), 2.0), Intrinsics(20.0, 20.0, 7.5, 5.5, 16, 12))
+    state = SimpleNamespace(frames=[previous])
+    start = se3_exp(torch.tensor([0.01, 0.0, 0.0, 0.0, math.radians(2.0), 0.0], dtype=torch.float64))
+    timing = SensorTiming(readout_s=0.03)
+    at_start = frame_at_start(SimpleNamespace(timing=timing), state, frame)
+    expected = synchronised(frame, tracked_velocity(previous, frame, start, True), timing)
+    assert torch.equal(at_start(frame, start).color, expected.color)
+    assert frame_at_start(SimpleNamespace(timing=SensorTiming()), state, frame) is None  # nothing to re-time
