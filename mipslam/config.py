@@ -99,8 +99,8 @@ class DatasetConfig:
     distortion: tuple[float, ...] | None = None
     association_tolerance_s: float = 0.02  # TUM rgb-depth-groundtruth association
     # Seconds a rolling-shutter colour camera takes to read its rows, top to bottom (0 = a global shutter); each
-    # row is moved to the frame's instant with the tracked rotation (mipslam.sensor_sync; docs/tracking.md,
-    # "Rolling shutter"). The frame's timestamp is taken as its middle row's instant.
+    # row is moved to the frame's instant with the tracked motion (mipslam.sensor_sync; docs/tracking.md,
+    # "A rolling shutter"). The frame's timestamp is taken as its middle row's instant.
     rolling_shutter_readout_s: float = 0.0
     realtime: bool = False  # realsense_bag: play at the recorded rate, dropping frames (false: every frame)
 

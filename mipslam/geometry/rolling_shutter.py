@@ -18,6 +18,8 @@ is not over-corrected: there the two motions' shifts of the image partly cancel.
 """
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
@@ -25,6 +27,7 @@ import torch.nn.functional as F
 # Fixed-point steps on the source row: the row moves by under a pixel per step once the first has moved it,
 # for rotations of a few degrees over the read-out.
 ROW_ITERATIONS = 2
+FIELD_MAX_PIXELS = 16384
 
 
 def row_times(height: int, readout_s: float, dtype: torch.dtype = torch.float64,
@@ -56,17 +59,22 @@ def colour_at_frame_instant(color: torch.Tensor, K: torch.Tensor, velocity: torc
         return color
     H, W = color.shape[:2]
     fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
-    # the points z (x, y, 1) the global-shutter pixels see: x [1, W], y [H, 1], z [H, W] or 1
-    x = ((torch.arange(W, dtype=dtype, device=dev) - cx) / fx)[None, :]
-    y = ((torch.arange(H, dtype=dtype, device=dev) - cy) / fy)[:, None]
+    # The source field is smooth: computed on every step-th pixel (under FIELD_MAX_PIXELS, where torch runs an
+    # elementwise op on one thread instead of paying a parallel region per op) and interpolated.
+    step = max(1, math.ceil(math.sqrt(H * W / FIELD_MAX_PIXELS)))
+    # the points z (x, y, 1) the global-shutter pixels see: x [1, w], y [h, 1], z [h, w] or 1
+    centre = (step - 1) / 2  # of each step x step block, as the interpolation below places its samples
+    u = torch.arange(0, W, step, dtype=dtype, device=dev) + centre
+    v = torch.arange(0, H, step, dtype=dtype, device=dev) + centre
+    x, y = ((u - cx) / fx)[None, :], ((v - cy) / fy)[:, None]
     z = torch.ones((), dtype=dtype, device=dev)
     if depth is not None:
-        depth = depth.to(dev, dtype)
+        depth = depth.to(dev, dtype)[(step - 1) // 2::step, (step - 1) // 2::step][:len(v), :len(u)]
         valid = depth > 0
         fill = depth[valid].median() if bool(valid.any()) else z
         z = torch.where(valid, depth, fill)
     kx, ky, kz = (omega / speed).tolist() if speed > 0 else (0.0, 0.0, 1.0)
-    row = torch.arange(H, dtype=dtype, device=dev)[:, None]  # the source row, first guessed as the pixel's own
+    row = v[:, None]  # the source row, first guessed as the pixel's own
     for _ in range(ROW_ITERATIONS):
         dt = ((row + 0.5) / H - 0.5) * readout_s  # seconds, at the source pixel's row
         px, py, pz = z * x - vx * dt, z * y - vy * dt, z - vz * dt  # X - v dt
@@ -77,9 +85,14 @@ def colour_at_frame_instant(color: torch.Tensor, K: torch.Tensor, velocity: torc
         rx = px * c + (ky * pz - kz * py) * s + kx * keep
         ry = py * c + (kz * px - kx * pz) * s + ky * keep
         rz = (pz * c + (kx * py - ky * px) * s + kz * keep).clamp_min(1e-9)
-        u_source, row = fx * rx / rz + cx, fy * ry / rz + cy  # [H, W]
+        u_source, row = fx * rx / rz + cx, fy * ry / rz + cy  # [h, w]
+    shift = torch.stack([u_source - u[None, :], row - v[:, None]])[None]  # [1, 2, h, w] pixels
+    if step > 1:
+        shift = F.interpolate(shift, size=(H, W), mode="bilinear", align_corners=False)
+    u_full = torch.arange(W, dtype=dtype, device=dev)[None, :] + shift[0, 0]
+    v_full = torch.arange(H, dtype=dtype, device=dev)[:, None] + shift[0, 1]
     # grid_sample's normalised coordinates with pixel centres at integers (align_corners=False)
-    grid = torch.stack([(2 * u_source + 1) / W - 1, (2 * row + 1) / H - 1], -1)
+    grid = torch.stack([(2 * u_full + 1) / W - 1, (2 * v_full + 1) / H - 1], -1)
     image = color.permute(2, 0, 1)[None].to(torch.float32)
     out = F.grid_sample(image, grid[None], mode="bilinear", padding_mode="border",
                         align_corners=False)
