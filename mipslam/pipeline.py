@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -117,10 +117,13 @@ def process_frame(stages: Stages, state: SLAMState, index: int, timestamp: float
 
 
 def frame_for_tracking(stages: Stages, state: SLAMState, frame: Frame) -> Frame:
-    """``frame`` at its colour instant by the motion model, for tracking's start (:mod:`mipslam.sensor_sync`)."""
-    if not stages.timing.moves(frame):
+    """``frame`` with its depth at the colour instant by the motion model, for tracking's start
+    (:mod:`mipslam.sensor_sync`). Its colour rows wait for the start's own motion (:func:`frame_at_start`): the
+    features and the start's judge do not need them moved, and each move costs a resampling of the image."""
+    timing = replace(stages.timing, readout_s=0.0)
+    if not timing.moves(frame):
         return frame
-    return synchronised(frame, predicted_velocity(state, frame), stages.timing)
+    return synchronised(frame, predicted_velocity(state, frame), timing)
 
 
 def frame_at_start(stages: Stages, state: SLAMState, frame: Frame) -> Callable[[Frame, torch.Tensor], Frame] | None:

@@ -16,9 +16,10 @@ The velocity (body frame, :func:`interval_velocity`) comes from the tracked moti
 
 - for tracking's start (the feature front-end and the judge of the start), the motion model's (the newest
   tracked interval's, as :func:`~mipslam.tracking.constant_velocity_prediction` repeats it):
-  :func:`predicted_velocity`; for its refinement, the motion from the previous frame to the chosen start pose
-  (:func:`tracked_velocity` at that pose): the motion model's lags the frame's own by 1.5 intervals, which on
-  a camera that shakes back and forth is often the wrong way;
+  :func:`predicted_velocity`, for the depth only; for its refinement, the motion from the previous frame to the
+  chosen start pose (:func:`tracked_velocity` at that pose), for the depth and the colour rows: the motion
+  model's lags the frame's own by 1.5 intervals, which on a camera that shakes back and forth is often the
+  wrong way;
 - for everything after tracking (keyframe decision, mapping, loop verification), the frame's own interval,
   from the previous frame's and its tracked poses: :func:`tracked_velocity`; a frame read again (an old
   keyframe, or after a resume) gets the same from the run's records (:func:`recorded_velocity`): tracked

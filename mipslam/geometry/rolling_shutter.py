@@ -86,14 +86,12 @@ def colour_at_frame_instant(color: torch.Tensor, K: torch.Tensor, velocity: torc
         ry = py * c + (kz * px - kx * pz) * s + ky * keep
         rz = (pz * c + (kx * py - ky * px) * s + kz * keep).clamp_min(1e-9)
         u_source, row = fx * rx / rz + cx, fy * ry / rz + cy  # [h, w]
-    shift = torch.stack([u_source - u[None, :], row - v[:, None]])[None]  # [1, 2, h, w] pixels
+    # grid_sample's normalised coordinates with pixel centres at integers (align_corners=False), interpolated
+    # from the blocks' centres to every pixel (exact where the field is linear)
+    grid = torch.stack([(2 * u_source + 1) / W - 1, (2 * row + 1) / H - 1])[None]  # [1, 2, h, w]
     if step > 1:
-        shift = F.interpolate(shift, size=(H, W), mode="bilinear", align_corners=False)
-    u_full = torch.arange(W, dtype=dtype, device=dev)[None, :] + shift[0, 0]
-    v_full = torch.arange(H, dtype=dtype, device=dev)[:, None] + shift[0, 1]
-    # grid_sample's normalised coordinates with pixel centres at integers (align_corners=False)
-    grid = torch.stack([(2 * u_full + 1) / W - 1, (2 * v_full + 1) / H - 1], -1)
+        grid = F.interpolate(grid, size=(H, W), mode="bilinear", align_corners=False)
     image = color.permute(2, 0, 1)[None].to(torch.float32)
-    out = F.grid_sample(image, grid[None], mode="bilinear", padding_mode="border",
+    out = F.grid_sample(image, grid.permute(0, 2, 3, 1), mode="bilinear", padding_mode="border",
                         align_corners=False)
     return out[0].permute(1, 2, 0).to(color.dtype).contiguous()
