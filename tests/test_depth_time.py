@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 
 from data_synth import default_intrinsics, make_scene, render_view, trajectory_poses
