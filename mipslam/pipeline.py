@@ -132,16 +132,21 @@ def frame_at_start(stages: Stages, state: SLAMState, frame: Frame) -> Callable[[
     (on a camera that shakes back and forth the two differ most)."""
     if not stages.timing.moves(frame):
         return None
+    return lambda _, T_wc_start: frame_at_pose(stages, state, frame, T_wc_start)
+
+
+def frame_at_pose(stages: Stages, state: SLAMState, frame: Frame, T_wc: torch.Tensor, tracked: bool = True) -> Frame:
+    """``frame`` at its colour instant by the motion from the newest recorded frame to ``T_wc`` [4, 4] (the frame
+    unmoved when that motion is not known: no earlier frame, or ``tracked`` False)."""
     previous = state.frames[-1] if state.frames else None
-    return lambda _, T_wc_start: synchronised(frame, tracked_velocity(previous, frame, T_wc_start, True), stages.timing)
+    return synchronised(frame, tracked_velocity(previous, frame, T_wc, tracked), stages.timing)
 
 
 def frame_after_tracking(stages: Stages, state: SLAMState, frame: Frame, tracked: TrackingResult) -> Frame:
     """``frame`` at its colour instant by its tracked motion, cached for the later stages."""
     if not stages.timing.moves(frame):
         return frame
-    previous = state.frames[-1] if state.frames else None
-    moved = synchronised(frame, tracked_velocity(previous, frame, tracked.T_wc, tracked.ok), stages.timing)
+    moved = frame_at_pose(stages, state, frame, tracked.T_wc, tracked.ok)
     if moved is not frame:
         stages.frames.put(moved)
     return moved

@@ -12,7 +12,7 @@ Two ways a real RGB-D camera's images are not one snapshot, each undone here wit
   the read-out time; each row is moved to the frame's instant
   (:func:`mipslam.geometry.rolling_shutter.colour_at_frame_instant`, docs/tracking.md, "A rolling shutter").
 
-The velocity (body frame, :func:`interval_velocity`) comes from the tracked motion:
+The velocity (body frame, :func:`~mipslam.geometry.depth_time.interval_velocity`) comes from the tracked motion:
 
 - for tracking's start (the feature front-end and the judge of the start), the motion model's (the newest
   tracked interval's, as :func:`~mipslam.tracking.constant_velocity_prediction` repeats it):
@@ -32,9 +32,8 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from mipslam.geometry.depth_time import MAX_OFFSET_S, depth_at_colour_time
+from mipslam.geometry.depth_time import depth_at_colour_time, depth_camera_pose, interval_velocity
 from mipslam.geometry.rolling_shutter import colour_at_frame_instant
-from mipslam.geometry.se3 import se3_exp, se3_inverse, se3_log
 from mipslam.types import Frame
 
 if TYPE_CHECKING:
@@ -56,15 +55,6 @@ class SensorTiming:
     def moves(self, frame: Frame) -> bool:
         """Whether anything of ``frame`` is moved (a depth offset to undo, or a rolling shutter)."""
         return self.readout_s > 0 or (self.align_depth_time and frame.depth_time_offset != 0)
-
-
-def interval_velocity(T_prev_wc: torch.Tensor, T_curr_wc: torch.Tensor, interval_s: float) -> torch.Tensor | None:
-    """Constant body-frame velocity over the motion ``T_prev -> T_curr`` (camera-to-world [4, 4]) of ``interval_s``
-    seconds: ``log(T_prev^-1 T_curr) / interval_s``, [rho (m/s), phi (rad/s)] in the camera frame.  -> [6]
-    float64, or None without a usable interval."""
-    if not interval_s > 0:
-        return None
-    return se3_log(se3_inverse(T_prev_wc.to(torch.float64)) @ T_curr_wc.to(torch.float64)) / interval_s
 
 
 def _velocity(earlier: "FrameRecord", T_wc_tracked: torch.Tensor, timestamp: float) -> torch.Tensor | None:
@@ -104,16 +94,16 @@ def recorded_velocity(state: "SLAMState", frame: Frame) -> torch.Tensor | None:
 
 def synchronised(frame: Frame, velocity: torch.Tensor | None, timing: SensorTiming) -> Frame:
     """``frame`` with its images moved to its colour instant by ``velocity`` [6] (body frame, m/s and rad/s):
-    the depth by its offset where ``timing.align_depth_time`` (offsets beyond MAX_OFFSET_S are not a stream's
-    and stay), the colour rows by ``timing.readout_s`` (with the depth at the colour instant). The frame itself when nothing moves or the velocity is
-    not known."""
+    the depth by its offset where ``timing.align_depth_time`` (:func:`~mipslam.geometry.depth_time.depth_camera_pose`: offsets beyond a
+    stream's stay), the colour rows by ``timing.readout_s`` (with the depth at the colour instant). The frame
+    itself when nothing moves or the velocity is not known."""
     if velocity is None or not timing.moves(frame):
         return frame
     K = frame.intrinsics.matrix(torch.float64, frame.depth.device)
     changes = {}
-    offset = frame.depth_time_offset
-    if timing.align_depth_time and offset != 0 and abs(offset) <= MAX_OFFSET_S:
-        changes["depth"] = depth_at_colour_time(frame.depth, K, se3_exp(velocity * offset))
+    T_cd = depth_camera_pose(velocity, frame.depth_time_offset) if timing.align_depth_time else None
+    if T_cd is not None:
+        changes["depth"] = depth_at_colour_time(frame.depth, K, T_cd)
     if timing.readout_s > 0:
         changes["color"] = colour_at_frame_instant(frame.color, K, velocity, timing.readout_s,
                                                    changes.get("depth", frame.depth))

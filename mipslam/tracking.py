@@ -583,8 +583,8 @@ def track_frame(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "Fra
     The start: the feature front-end's pose against the newest tracked frame (:func:`frontend_start`) where
     the map renders it better than the motion model's prediction (:meth:`Tracker.best_start`), else the
     prediction. ``at_start(frame, T_wc_start)``, where given, re-times the frame's images with the motion to
-    the start (:mod:`mipslam.sensor_sync`) before the refinement. A frame whose tracking fails is matched to the newest keyframes (:func:`relocalise_keyframes`),
-    then aligned to the previous frame (:func:`relocalise`). ``frames[index]`` is an earlier frame. The
+    the start (:mod:`mipslam.sensor_sync`) before the refinement. A frame whose tracking fails is matched to the
+    newest keyframes (:func:`relocalise_keyframes`), then aligned to the previous frame (:func:`relocalise`). ``frames[index]`` is an earlier frame. The
     result's ``T_wc`` [4, 4] float64 (camera-to-world) is projected onto SE(3)
     (:func:`~mipslam.geometry.nearest_rigid`).
     """

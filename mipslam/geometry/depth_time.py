@@ -26,18 +26,33 @@ MAX_OFFSET_S = 0.05
 WARP_ITERATIONS = 2  # fixed-point steps of the backward warp (sub-pixel after 2 for motions of a few pixels)
 
 
+def interval_velocity(T_prev_wc: torch.Tensor, T_curr_wc: torch.Tensor, interval_s: float) -> torch.Tensor | None:
+    """Constant body-frame velocity over the motion ``T_prev -> T_curr`` (camera-to-world [4, 4]) of ``interval_s``
+    seconds: ``log(T_prev^-1 T_curr) / interval_s``, [rho (m/s), phi (rad/s)] in the camera frame.  -> [6]
+    float64, or None without a usable interval."""
+    if not interval_s > 0:
+        return None
+    return se3_log(se3_inverse(T_prev_wc.to(torch.float64)) @ T_curr_wc.to(torch.float64)) / interval_s
+
+
+def depth_camera_pose(velocity: torch.Tensor, offset_s: float) -> torch.Tensor | None:
+    """Pose of the depth camera (at ``t + offset_s``) in the colour camera's frame (at ``t``) for a camera moving
+    at ``velocity`` [6] (:func:`interval_velocity`): ``exp(velocity * offset_s)``. None when there is nothing to
+    move (no offset, or an offset beyond MAX_OFFSET_S).  -> T_cd [4, 4] float64"""
+    if offset_s == 0 or abs(offset_s) > MAX_OFFSET_S:
+        return None
+    return se3_exp(velocity.to(torch.float64) * offset_s)
+
+
 def depth_camera_motion(T_prev_wc: torch.Tensor, T_curr_wc: torch.Tensor, interval_s: float,
                         offset_s: float) -> torch.Tensor | None:
-    """Pose of the depth camera (at ``t + offset_s``) in the colour camera's frame (at ``t``), from the
-    motion ``T_prev -> T_curr`` over ``interval_s`` seconds (module docstring). None when there is nothing
-    to move (no offset, no usable interval, or an offset beyond MAX_OFFSET_S).
+    """:func:`depth_camera_pose` for the motion ``T_prev -> T_curr`` over ``interval_s`` seconds (module
+    docstring); None also without a usable interval.
 
     T_prev_wc, T_curr_wc: [4, 4] camera-to-world -> T_cd [4, 4] float64
     """
-    if offset_s == 0 or not (0 < interval_s) or abs(offset_s) > MAX_OFFSET_S:
-        return None
-    xi = se3_log(se3_inverse(T_prev_wc.to(torch.float64)) @ T_curr_wc.to(torch.float64))  # [6] per interval
-    return se3_exp(xi * (offset_s / interval_s))
+    velocity = interval_velocity(T_prev_wc, T_curr_wc, interval_s)
+    return None if velocity is None else depth_camera_pose(velocity, offset_s)
 
 
 def depth_at_colour_time(depth: torch.Tensor, K: torch.Tensor, T_cd: torch.Tensor) -> torch.Tensor:

@@ -30,11 +30,16 @@ ROW_ITERATIONS = 2
 FIELD_MAX_PIXELS = 16384
 
 
+def row_time(rows: torch.Tensor, height: int, readout_s: float) -> torch.Tensor:
+    """Seconds from the frame's instant to the read-out of (fractional) rows ``rows`` of an image ``height``
+    rows high (module docstring); shape and dtype of ``rows``."""
+    return ((rows + 0.5) / height - 0.5) * readout_s
+
+
 def row_times(height: int, readout_s: float, dtype: torch.dtype = torch.float64,
               device: torch.device | str = "cpu") -> torch.Tensor:
-    """Seconds from the frame's instant to each row's read-out (module docstring).  -> [H]"""
-    rows = torch.arange(height, dtype=dtype, device=device)
-    return ((rows + 0.5) / height - 0.5) * readout_s
+    """:func:`row_time` of every row.  -> [H]"""
+    return row_time(torch.arange(height, dtype=dtype, device=device), height, readout_s)
 
 
 def colour_at_frame_instant(color: torch.Tensor, K: torch.Tensor, velocity: torch.Tensor, readout_s: float,
@@ -76,7 +81,7 @@ def colour_at_frame_instant(color: torch.Tensor, K: torch.Tensor, velocity: torc
     kx, ky, kz = (omega / speed).tolist() if speed > 0 else (0.0, 0.0, 1.0)
     row = v[:, None]  # the source row, first guessed as the pixel's own
     for _ in range(ROW_ITERATIONS):
-        dt = ((row + 0.5) / H - 0.5) * readout_s  # seconds, at the source pixel's row
+        dt = row_time(row, H, readout_s)  # seconds, at the source pixel's row
         px, py, pz = z * x - vx * dt, z * y - vy * dt, z - vz * dt  # X - v dt
         angle = -speed * dt  # R^T: the turn undone
         c, s = angle.cos(), angle.sin()
