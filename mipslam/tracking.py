@@ -115,13 +115,15 @@ class _Seen:
 @dataclass(frozen=True)
 class _StartView:
     """One of best_start's renders: the map it rendered, the pose [4, 4] (the map's dtype, world-to-camera), the
-    map's frustum subset there, the render and its tracking loss (tracking from that start reuses all three)."""
+    map's frustum subset there, the render and its tracking loss (tracking from that start reuses all three).
+    ``loss`` is None on a view carried to a re-timed copy of the judged frame (:meth:`Tracker.retimed`): the
+    render holds, its loss against the moved images is computed when read."""
 
     gaussians: ActivatedGaussians
     T_cw: torch.Tensor
     subset: ActivatedGaussians
     render: RenderOutput
-    loss: RGBDLoss
+    loss: RGBDLoss | None
 
 
 @dataclass(frozen=True)
@@ -165,6 +167,18 @@ class Tracker:
         if self._work is None or self._work.frame is not frame:
             self._work = _FrameWork(frame, self._build_levels(frame))
         return self._work
+
+    def retimed(self, frame: Frame, moved: Frame) -> None:
+        """Take ``moved``, a copy of ``frame`` with its images moved to another instant (same index, camera and
+        pose; :mod:`mipslam.sensor_sync`), as the frame tracked next. The start judge's renders of ``frame`` are
+        kept for it (they depend on the map, the pose and the camera alone); their losses and the image
+        pyramid are computed again from the moved images."""
+        if moved is frame or self._work is None or self._work.frame is not frame:
+            return
+        if moved.index != frame.index or moved.intrinsics != frame.intrinsics:
+            raise ValueError(f"Tracker.retimed: frame {moved.index} is not a re-timed copy of frame {frame.index}")
+        starts = [replace(view, loss=None) for view in self._work.starts]
+        self._work = _FrameWork(moved, self._build_levels(moved), starts=starts)
 
     def _levels(self, frame: Frame) -> list[_Level]:
         """The frame's image pyramid and loss masks, coarse to fine (built once per frame)."""
@@ -265,7 +279,8 @@ class Tracker:
         for round_index in range(cfg.direct_renders):
             start = self._frame_work(frame).start_view(start_map, T_cw.to(dtype)) if round_index == 0 else None
             if start is not None:
-                out, loss = start.render, start.loss
+                out = start.render
+                loss = start.loss if start.loss is not None else self._loss_of_render(out, full, None)
             else:
                 out = render_view(gaussians, T_cw.to(dtype), full.intrinsics, self.render_config,
                                   mode=full.render_mode, pose_only=True)
@@ -613,7 +628,9 @@ def track_frame(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "Fra
         log.debug("frame %d: features gave no start (%s); dense RGB-D start %s", frame.index, start.reason, outcome)
     T_wc_start = candidates[chosen]
     if at_start is not None:
-        frame = at_start(frame, T_wc_start)
+        moved = at_start(frame, T_wc_start)
+        tracker.retimed(frame, moved)
+        frame = moved
     result = tracker.track(detached, frame, T_wc_start, state.running_loss)
     result = relocalise_keyframes(tracker, frontend, state, frame, frames, detached, result)
     result = relocalise(tracker, state, frame, frames, detached, result)

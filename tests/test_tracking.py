@@ -397,6 +397,35 @@ def test_the_direct_alignment_reuses_the_start_judges_render_of_the_chosen_start
     assert after_judge - 2 == len(renders) - after_judge - 1
 
 
+def test_a_retimed_frame_keeps_the_start_judges_renders_and_is_tracked_on_its_own_images(one_frame_map_128,
+                                                                                          monkeypatch):
+    seq, config, sequence, gaussians = one_frame_map_128
+    frame = sequence[0]
+    moved = replace(frame, color=torch.roll(frame.color, 1, dims=1))  # the frame's images, moved
+    T_wc_true = sequence.gt_T_wc[0]
+    candidates = [T_wc_true @ se3_exp(torch.tensor([0.02, 0.0, 0.0, 0.0, 0.01, 0.0], dtype=torch.float64)),
+                  T_wc_true @ se3_exp(torch.tensor([0.005, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64))]
+    settings = replace(tiny_config(seq, "tracking.iterations=4", *_OPTIMIZERS["rprop"]).tracking,
+                       direct_iterations=8, start_margin=0.0)
+    renders = []
+    real_render = tracking.render_view
+    monkeypatch.setattr(tracking, "render_view", lambda *a, **k: renders.append(1) or real_render(*a, **k))
+    judged = Tracker(settings, config.render)
+    chosen = judged.best_start(gaussians, frame, candidates)
+    judged.retimed(frame, moved)
+    reused = judged.track(gaussians, moved, candidates[chosen], running_loss=None)
+    after_judge = len(renders)
+    fresh = Tracker(settings, config.render).track(gaussians, moved, candidates[chosen], running_loss=None)
+    # the moved images' pose, bit for bit, with the judge's render of the start reused
+    assert torch.equal(reused.T_wc, fresh.T_wc) and reused.loss == fresh.loss
+    assert after_judge - 2 == len(renders) - after_judge - 1
+    original = Tracker(settings, config.render).track(gaussians, frame, candidates[chosen], running_loss=None)
+    assert original.loss != reused.loss
+    with pytest.raises(ValueError, match="not a re-timed copy"):
+        judged.best_start(gaussians, frame, candidates)
+        judged.retimed(frame, sequence[1])
+
+
 @pytest.mark.parametrize("exposure,optimizer", [(True, "rprop"), (False, "adam")])
 def test_compiled_steps_track_bit_equal_to_autograd(one_frame_map, monkeypatch, exposure, optimizer):
     """The compiled backend's gradient steps carry the chain rule by hand (Tracker._step_render); autograd
