@@ -421,9 +421,9 @@ def test_a_retimed_frame_keeps_the_start_judges_renders_and_is_tracked_on_its_ow
     assert after_judge - 2 == len(renders) - after_judge - 1
     original = Tracker(settings, config.render).track(gaussians, frame, candidates[chosen], running_loss=None)
     assert original.loss != reused.loss
+    judged.best_start(gaussians, frame, candidates)
     with pytest.raises(ValueError, match="not a re-timed copy"):
-        judged.best_start(gaussians, frame, candidates)
-        judged.retimed(frame, sequence[1])
+        judged.retimed(frame, sequence[1])  # another frame's images
 
 
 @pytest.mark.parametrize("exposure,optimizer", [(True, "rprop"), (False, "adam")])
