@@ -394,7 +394,8 @@ def load_extension() -> Library:
             _state["library"] = _load()
         except BackendUnavailableError as exc:
             _state["reason"] = str(exc)
-            log.warning("mipslam cpu rasterizer unavailable, using the torch backend instead: %s", _state["reason"])
+            log.warning("mipslam's compiled CPU library is unavailable (CPU rendering falls back to the torch backend, "
+                        "the feature front-end's matching to numpy): %s", _state["reason"])
             raise BackendUnavailableError(f"the cpu backend is not available: {_state['reason']}") from None
         return _state["library"]
 
