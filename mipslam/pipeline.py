@@ -126,13 +126,13 @@ def frame_for_tracking(stages: Stages, state: SLAMState, frame: Frame) -> Frame:
     return synchronised(frame, predicted_velocity(state, frame), timing)
 
 
-def frame_at_start(stages: Stages, state: SLAMState, frame: Frame) -> Callable[[Frame, torch.Tensor], Frame] | None:
-    """For tracking's refinement: ``frame`` at its colour instant by the motion from the previous frame to the
-    chosen start pose, a measurement of this frame's own motion where the motion model repeats the last one's
-    (on a camera that shakes back and forth the two differ most)."""
+def frame_at_start(stages: Stages, state: SLAMState, frame: Frame) -> Callable[[torch.Tensor], Frame] | None:
+    """For tracking's refinement: the chosen start pose T_wc [4, 4] -> ``frame`` at its colour instant by the
+    motion from the previous frame to that pose, a measurement of this frame's own motion where the motion model
+    repeats the last one's (on a camera that shakes back and forth the two differ most). None: nothing moves."""
     if not stages.timing.moves(frame):
         return None
-    return lambda _, T_wc_start: frame_at_pose(stages, state, frame, T_wc_start)
+    return lambda T_wc_start: frame_at_pose(stages, state, frame, T_wc_start)
 
 
 def frame_at_pose(stages: Stages, state: SLAMState, frame: Frame, T_wc: torch.Tensor, tracked: bool = True) -> Frame:

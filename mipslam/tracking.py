@@ -591,17 +591,17 @@ def initial_result(T_wc: torch.Tensor) -> TrackingResult:
 
 def track_frame(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "FrameCache",
                 T_wc_first: torch.Tensor, frontend: Frontend | None = None,
-                at_start: Callable[[Frame, torch.Tensor], Frame] | None = None) -> TrackingResult:
+                at_start: Callable[[torch.Tensor], Frame] | None = None) -> TrackingResult:
     """Track ``frame`` against the frozen map of ``state``; the first frame (or any frame while the map is
     empty) takes its pose from ``T_wc_first`` [4, 4] float64 or the start without tracking.
 
     The start: the feature front-end's pose against the newest tracked frame (:func:`frontend_start`) where
     the map renders it better than the motion model's prediction (:meth:`Tracker.best_start`), else the
-    prediction. ``at_start(frame, T_wc_start)``, where given, re-times the frame's images with the motion to
-    the start (:mod:`mipslam.sensor_sync`) before the refinement. A frame whose tracking fails is matched to the
-    newest keyframes (:func:`relocalise_keyframes`), then aligned to the previous frame (:func:`relocalise`). ``frames[index]`` is an earlier frame. The
-    result's ``T_wc`` [4, 4] float64 (camera-to-world) is projected onto SE(3)
-    (:func:`~mipslam.geometry.nearest_rigid`).
+    prediction. ``at_start(T_wc_start)``, where given, is the frame with its images re-timed by the motion to
+    the start (:mod:`mipslam.sensor_sync`), which the refinement tracks. A frame whose tracking fails is matched
+    to the newest keyframes (:func:`relocalise_keyframes`), then aligned to the previous frame
+    (:func:`relocalise`). ``frames[index]`` is an earlier frame. The result's ``T_wc`` [4, 4] float64
+    (camera-to-world) is projected onto SE(3) (:func:`~mipslam.geometry.nearest_rigid`).
     """
     previous = state.frames[-2:]
     if not previous:
@@ -628,7 +628,7 @@ def track_frame(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "Fra
         log.debug("frame %d: features gave no start (%s); dense RGB-D start %s", frame.index, start.reason, outcome)
     T_wc_start = candidates[chosen]
     if at_start is not None:
-        moved = at_start(frame, T_wc_start)
+        moved = at_start(T_wc_start)
         tracker.retimed(frame, moved)
         frame = moved
     result = tracker.track(detached, frame, T_wc_start, state.running_loss)
