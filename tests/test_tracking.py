@@ -2,13 +2,13 @@
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from types import SimpleNamespace
 
 import pytest
 import torch
 
-from mipslam.config import RenderConfig, load_config
+from mipslam.config import RenderConfig, TrackingConfig, load_config
 from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry import se3_exp, se3_inverse, se3_log
 from mipslam.geometry.direct import DirectResult
@@ -18,7 +18,7 @@ import mipslam.rendering as rendering_module
 import mipslam.tracking as tracking
 from mipslam.state import FrameRecord, SLAMState
 from mipslam.tracking import Tracker, TrackingResult, constant_velocity_prediction, relocalise
-from mipslam.types import Intrinsics
+from mipslam.types import Frame, Intrinsics
 from mipslam.datasets import make_sequence
 from tiny_runs import REPO, map_of_first_frame, tiny_config
 
@@ -375,7 +375,22 @@ def test_the_direct_alignment_runs_compiled_where_the_render_backend_does():
     assert direct_aligner("cpu", cpu) is expected
 
 
-def test_the_direct_alignment_reuses_the_start_judges_render_of_the_chosen_start(one_frame_map_128, monkeypatch):
+@dataclass
+class _JudgedStarts:
+    """A tracker that judged two starts of frame 0 (2 cm / 0.6 deg and 0.5 cm off), with render_view counted."""
+
+    settings: TrackingConfig
+    render_config: RenderConfig
+    gaussians: ActivatedGaussians
+    sequence: object  # the run's frames (frame 0 is ``frame``)
+    frame: Frame
+    candidates: list[torch.Tensor]  # [4, 4] float64 camera-to-world each
+    tracker: Tracker
+    chosen: int
+    renders: list  # one entry per render_view call
+
+
+def _judge_two_starts(one_frame_map_128, monkeypatch) -> _JudgedStarts:
     seq, config, sequence, gaussians = one_frame_map_128
     frame = sequence[0]
     T_wc_true = sequence.gt_T_wc[0]
@@ -388,42 +403,38 @@ def test_the_direct_alignment_reuses_the_start_judges_render_of_the_chosen_start
     monkeypatch.setattr(tracking, "render_view", lambda *a, **k: renders.append(1) or real_render(*a, **k))
     judged = Tracker(settings, config.render)
     chosen = judged.best_start(gaussians, frame, candidates)
-    assert chosen == 1 and len(renders) == 2
-    reused = judged.track(gaussians, frame, candidates[chosen], running_loss=None)
-    after_judge = len(renders)
-    fresh = Tracker(settings, config.render).track(gaussians, frame, candidates[chosen], running_loss=None)
+    return _JudgedStarts(settings, config.render, gaussians, sequence, frame, candidates, judged, chosen, renders)
+
+
+def test_the_direct_alignment_reuses_the_start_judges_render_of_the_chosen_start(one_frame_map_128, monkeypatch):
+    j = _judge_two_starts(one_frame_map_128, monkeypatch)
+    assert j.chosen == 1 and len(j.renders) == 2
+    start = j.candidates[j.chosen]
+    reused = j.tracker.track(j.gaussians, j.frame, start, running_loss=None)
+    after_judge = len(j.renders)
+    fresh = Tracker(j.settings, j.render_config).track(j.gaussians, j.frame, start, running_loss=None)
     # the same pose, bit for bit, with one render fewer
     assert torch.equal(reused.T_wc, fresh.T_wc) and reused.loss == fresh.loss
-    assert after_judge - 2 == len(renders) - after_judge - 1
+    assert after_judge - 2 == len(j.renders) - after_judge - 1
 
 
 def test_a_retimed_frame_keeps_the_start_judges_renders_and_is_tracked_on_its_own_images(one_frame_map_128,
                                                                                           monkeypatch):
-    seq, config, sequence, gaussians = one_frame_map_128
-    frame = sequence[0]
-    moved = replace(frame, color=torch.roll(frame.color, 1, dims=1))  # the frame's images, moved
-    T_wc_true = sequence.gt_T_wc[0]
-    candidates = [T_wc_true @ se3_exp(torch.tensor([0.02, 0.0, 0.0, 0.0, 0.01, 0.0], dtype=torch.float64)),
-                  T_wc_true @ se3_exp(torch.tensor([0.005, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64))]
-    settings = replace(tiny_config(seq, "tracking.iterations=4", *_OPTIMIZERS["rprop"]).tracking,
-                       direct_iterations=8, start_margin=0.0)
-    renders = []
-    real_render = tracking.render_view
-    monkeypatch.setattr(tracking, "render_view", lambda *a, **k: renders.append(1) or real_render(*a, **k))
-    judged = Tracker(settings, config.render)
-    chosen = judged.best_start(gaussians, frame, candidates)
-    judged.retimed(frame, moved)
-    reused = judged.track(gaussians, moved, candidates[chosen], running_loss=None)
-    after_judge = len(renders)
-    fresh = Tracker(settings, config.render).track(gaussians, moved, candidates[chosen], running_loss=None)
+    j = _judge_two_starts(one_frame_map_128, monkeypatch)
+    moved = replace(j.frame, color=torch.roll(j.frame.color, 1, dims=1))  # the frame's images, moved
+    start = j.candidates[j.chosen]
+    j.tracker.retimed(j.frame, moved)
+    reused = j.tracker.track(j.gaussians, moved, start, running_loss=None)
+    after_judge = len(j.renders)
+    fresh = Tracker(j.settings, j.render_config).track(j.gaussians, moved, start, running_loss=None)
     # the moved images' pose, bit for bit, with the judge's render of the start reused
     assert torch.equal(reused.T_wc, fresh.T_wc) and reused.loss == fresh.loss
-    assert after_judge - 2 == len(renders) - after_judge - 1
-    original = Tracker(settings, config.render).track(gaussians, frame, candidates[chosen], running_loss=None)
+    assert after_judge - 2 == len(j.renders) - after_judge - 1
+    original = Tracker(j.settings, j.render_config).track(j.gaussians, j.frame, start, running_loss=None)
     assert original.loss != reused.loss
-    judged.best_start(gaussians, frame, candidates)
+    j.tracker.best_start(j.gaussians, j.frame, j.candidates)
     with pytest.raises(ValueError, match="not a re-timed copy"):
-        judged.retimed(frame, sequence[1])  # another frame's images
+        j.tracker.retimed(j.frame, j.sequence[1])  # another frame's images
 
 
 @pytest.mark.parametrize("exposure,optimizer", [(True, "rprop"), (False, "adam")])
