@@ -123,8 +123,8 @@ def decide_keyframe(
     """Apply the keyframe rule of the module docstring (covisibility with ``config``'s tolerance and stride).
 
     Poses are camera-to-world float64 (OpenCV camera); translations in metres, rotations in degrees."""
-    median_current = median_valid_depth(depth)
     if last_keyframe_T_wc is None or last_keyframe_depth is None:
+        median_current = median_valid_depth(depth)
         has_depth = not math.isnan(median_current)
         return KeyframeDecision(has_depth, ("first",) if has_depth else ("no_valid_depth",), math.nan, 0.0, 0.0,
                                 0.0, median_current)
@@ -135,8 +135,8 @@ def decide_keyframe(
     translation = float(T_kc[:3, 3].norm())
     rotation = math.degrees(float(rotation_angle(T_kc[:3, :3])))
     median = median_valid_depth(last_keyframe_depth)
-    if math.isnan(median):
-        median = median_current
+    if math.isnan(median):  # the frame's own, only then: a median is a sort of its valid pixels
+        median = median_valid_depth(depth)
     ratio = translation / median if median > 0 else (math.inf if translation > 0 else 0.0)
     if math.isnan(covis):
         return KeyframeDecision(False, ("no_valid_depth",), covis, translation, ratio, rotation, median)
