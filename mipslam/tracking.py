@@ -38,9 +38,9 @@ from mipslam.frontend import Frontend, FrontendStart
 from mipslam.geometry.direct import DirectReference, DirectTarget, direct_reference, direct_target, pyramid_scales
 from mipslam.geometry.se3 import se3_exp, se3_exp_times, se3_exp_times_vjp, se3_inverse, se3_log
 from mipslam.losses.photometric import (RGBDLoss, RGBDMasks, apply_affine_exposure, image_gradient_mask, rgbd_l1_loss,
-                                        rgbd_l1_loss_and_gradients, rgbd_masks)
+                                        rgbd_masks)
 from mipslam.loop.registration import RegistrationOptions, register_rgbd_odometry
-from mipslam.render import RenderOutput, direct_aligner
+from mipslam.render import RenderOutput, direct_aligner, rgbd_loss_and_gradients
 from mipslam.rendering import frustum_subset, render_view, render_view_pose_only
 from mipslam.types import Frame, Intrinsics
 
@@ -280,11 +280,11 @@ class Tracker:
             start = self._frame_work(frame).start_view(start_map, T_cw.to(dtype)) if round_index == 0 else None
             if start is not None:
                 out = start.render
-                loss = start.loss if start.loss is not None else self._loss_of_render(out, full, None)
+                loss = start.loss if start.loss is not None else self._judged_loss(out, full)
             else:
                 out = render_view(gaussians, T_cw.to(dtype), full.intrinsics, self.render_config,
                                   mode=full.render_mode, pose_only=True)
-                loss = self._loss_of_render(out, full, None)
+                loss = self._judged_loss(out, full)
             value = float(loss.total)
             if not math.isfinite(value) or (best is not None and value >= best.loss):
                 return (T_cw if best is None else best.T_cw), best, steps
@@ -324,9 +324,10 @@ class Tracker:
         tensors whose ``.grad`` it sets).
 
         On the compiled CPU backend the chain rule is carried by hand (:func:`se3_exp_times_vjp`,
-        :func:`~mipslam.rendering.render_view_pose_only`, :func:`rgbd_l1_loss_and_gradients`): the same library
-        calls and tensor operations as autograd's, so the same bits, without its graph and engine (about a
-        quarter of a step's time at 160x120). Elsewhere autograd (:meth:`_loss`), the reference
+        :func:`~mipslam.rendering.render_view_pose_only`, :func:`~mipslam.render.rgbd_loss_and_gradients`): the
+        library's calls in place of autograd's graph and engine (about a quarter of a step's time at 160x120), and
+        the loss and its gradient images in one library pass. The gradient images are autograd's bit for bit, the
+        loss and the exposure's gradient sums equal to rounding. Elsewhere autograd (:meth:`_loss`), the reference
         (tests/test_tracking.py compares the two)."""
         dtype = gaussians.means.dtype
         T_cw, pose_vjp = se3_exp_times_vjp(rho, phi, T_cw_init, dtype)  # (se3_exp([rho, phi]) @ T_cw_init).to(dtype)
@@ -336,8 +337,8 @@ class Tracker:
             loss, alpha = self._loss(gaussians, T_cw, level, exposure)
             return _StepRender(loss, alpha, loss.total.backward)
         affine = None if exposure is None else tuple(exposure.detach().unbind())
-        loss, gradients = rgbd_l1_loss_and_gradients(render.color, render.depth, level.color, level.depth,
-                                                     exposure=affine, **self._loss_terms(render.alpha, level))
+        loss, gradients = rgbd_loss_and_gradients(self.render_config.backend, render.color, render.depth, level.color,
+                                                  level.depth, exposure=affine, **self._loss_terms(render.alpha, level))
 
         def backward() -> None:
             rho.grad, phi.grad = pose_vjp(render.viewmat_gradient(gradients.color, gradients.depth))
@@ -353,9 +354,17 @@ class Tracker:
         return self._loss_of_render(out, level, exposure), out.alpha.detach()
 
     def _loss_of_render(self, out: RenderOutput, level: _Level, exposure: torch.Tensor | None):
-        """The tracking loss of the render ``out`` against ``level``."""
+        """The tracking loss of the render ``out`` against ``level`` (differentiable where ``out`` is)."""
         color = out.color if exposure is None else apply_affine_exposure(out.color, exposure[0], exposure[1])
         return rgbd_l1_loss(color, out.depth, level.color, level.depth, **self._loss_terms(out.alpha, level))
+
+    def _judged_loss(self, out: RenderOutput, level: _Level) -> RGBDLoss:
+        """The tracking loss of the render ``out`` against ``level`` without exposure and without gradients (the
+        start judge's and the direct alignment's), in one pass of the compiled library where it renders."""
+        loss, _ = rgbd_loss_and_gradients(self.render_config.backend, out.color.detach(), out.depth.detach(),
+                                          level.color, level.depth, gradients=False,
+                                          **self._loss_terms(out.alpha, level))
+        return loss
 
     def _loss_terms(self, alpha: torch.Tensor, level: _Level) -> dict:
         """The tracking loss's keyword arguments for a render with opacity ``alpha`` [h, w] against ``level``: its
@@ -487,7 +496,7 @@ class Tracker:
             subset = frustum_subset(gaussians, T_cw, frame.intrinsics, self.render_config)
             out = render_view(subset, T_cw, level.intrinsics, self.render_config, mode=level.render_mode,
                               pose_only=True)
-            loss = self._loss_of_render(out, level, None)
+            loss = self._judged_loss(out, level)
             # tracking from this start takes the same subset, and the direct alignment's first render is this one
             work.starts.append(_StartView(gaussians, T_cw, subset, out, loss))
             valid = loss.num_depth_pixels / max(1, level.depth.numel())

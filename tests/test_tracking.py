@@ -438,9 +438,10 @@ def test_a_retimed_frame_keeps_the_start_judges_renders_and_is_tracked_on_its_ow
 
 
 @pytest.mark.parametrize("exposure,optimizer", [(True, "rprop"), (False, "adam")])
-def test_compiled_steps_track_bit_equal_to_autograd(one_frame_map, monkeypatch, exposure, optimizer):
+def test_compiled_steps_track_as_autograd(one_frame_map, monkeypatch, exposure, optimizer):
     """The compiled backend's gradient steps carry the chain rule by hand (Tracker._step_render); autograd
-    through render_view and rgbd_l1_loss is the reference: the same pose, loss and steps, bit for bit."""
+    through render_view and rgbd_l1_loss is the reference: the same pose, exposure and steps, bit for bit (the
+    gradient images are autograd's), the loss to rounding (the library sums in float64)."""
     if rendering_module.render_view_pose_only(one_frame_map[3], torch.eye(4), one_frame_map[2][0].intrinsics,
                                               one_frame_map[1].render) is None:
         pytest.skip("the compiled CPU backend is not built here")
@@ -454,7 +455,7 @@ def test_compiled_steps_track_bit_equal_to_autograd(one_frame_map, monkeypatch, 
     monkeypatch.setattr(tracking, "render_view_pose_only", lambda *args, **kwargs: None)
     reference = Tracker(settings, config.render).track(gaussians, frame, T_wc_init, running_loss=None)
     assert compiled.ok and reference.ok and compiled.iterations == reference.iterations
-    assert torch.equal(compiled.T_wc, reference.T_wc) and compiled.loss == reference.loss
+    assert torch.equal(compiled.T_wc, reference.T_wc) and compiled.loss == pytest.approx(reference.loss, rel=1e-6)
     assert torch.equal(compiled.exposure, reference.exposure)
     assert not torch.equal(compiled.T_wc, T_wc_init)
 

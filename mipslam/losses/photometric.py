@@ -311,7 +311,7 @@ def rgbd_l1_loss_and_gradients(
     tensor operations in the same order (the L1 terms' ``sign(r) * w / n``, the exposure's broadcast sums as
     autograd's ``sum_to_size``); tests/test_losses.py compares them with ``torch.equal``.
     """
-    _check_rgbd_loss_inputs("rgbd_l1_loss_and_gradients", color, depth, color_gt, depth_gt, alpha_color)
+    check_rgbd_loss_inputs("rgbd_l1_loss_and_gradients", color, depth, color_gt, depth_gt, alpha_color)
     gain = None
     if exposure is not None:
         log_gain, bias = exposure
@@ -408,7 +408,7 @@ def coverage_loss(
     return value
 
 
-def _check_rgbd_loss_inputs(name: str, color: torch.Tensor, depth: torch.Tensor, color_gt: torch.Tensor,
+def check_rgbd_loss_inputs(name: str, color: torch.Tensor, depth: torch.Tensor, color_gt: torch.Tensor,
                             depth_gt: torch.Tensor, alpha_color: float) -> None:
     """The loss's argument checks, shared by :func:`rgbd_l1_loss` and :func:`rgbd_l1_loss_and_gradients`."""
     if not 0.0 <= alpha_color <= 1.0:
@@ -446,7 +446,7 @@ def rgbd_l1_loss(
     depth_alpha_floor))`` with the observed depth (module docstring); None compares the raw ``D``.
     ``depth_outlier_ratio`` > 0 drops depth pixels whose residual exceeds that many times the median residual.
     """
-    _check_rgbd_loss_inputs("rgbd_l1_loss", color, depth, color_gt, depth_gt, alpha_color)
+    check_rgbd_loss_inputs("rgbd_l1_loss", color, depth, color_gt, depth_gt, alpha_color)
     if masks is None:
         masks = rgbd_masks(
             color_gt,

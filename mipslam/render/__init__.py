@@ -194,6 +194,23 @@ def direct_aligner(backend: str, device: torch.device):
     return align_direct
 
 
+def rgbd_loss_and_gradients(backend: str, color: torch.Tensor, depth: torch.Tensor, color_gt: torch.Tensor,
+                            depth_gt: torch.Tensor, *, gradients: bool = True, **terms):
+    """A render's masked RGB-D L1 loss and its gradients (:func:`mipslam.losses.photometric.rgbd_l1_loss_and_gradients`,
+    whose keyword arguments ``terms`` are): in one pass of the compiled library
+    (:func:`mipslam.render.cpu.backend.rgbd_l1_loss_and_gradients`) where ``backend`` (``render.backend``) takes
+    it, it is built and the images are CPU float32, else in torch. -> (RGBDLoss, RGBDLossGradients, or None
+    with ``gradients=False``)."""
+    cpu = (_cpu_backend_module() if backend != "torch" and color.device.type == "cpu" and color.dtype == torch.float32
+           else None)
+    if cpu is not None:
+        return cpu.rgbd_l1_loss_and_gradients(color, depth, color_gt, depth_gt, gradients=gradients, **terms)
+    from mipslam.losses.photometric import rgbd_l1_loss_and_gradients
+
+    loss, grads = rgbd_l1_loss_and_gradients(color, depth, color_gt, depth_gt, **terms)
+    return loss, grads if gradients else None
+
+
 def _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height):
     n = means.shape[0] if means.dim() == 2 else -1
     expected = {"means": (means, (n, 3)), "quats": (quats, (n, 4)), "scales": (scales, (n, 3)),

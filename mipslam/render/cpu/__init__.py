@@ -18,6 +18,8 @@ backward. Modules, one job each:
     backend.py   the entry points (rasterize, rasterize_projected, project_footprints, ...)
     direct_align.h  tracking's direct RGB-D alignment (align_direct), the twin of mipslam.geometry.direct's
     feature_match.h the feature front-end's guided matching, the twin of mipslam.frontend's k-d tree gate
+    rgbd_loss.h     tracking's masked RGB-D L1 loss and its gradients, the twin of
+                    mipslam.losses.photometric.rgbd_l1_loss_and_gradients
 
 Nothing here compiles: a missing or stale build logs one warning, :func:`is_available` is False,
 ``backend="auto"`` uses the torch backend and ``backend="cpu"`` raises
@@ -29,7 +31,7 @@ from mipslam.render.cpu.autograd import ProjectFootprints, RasterizeProjected
 from mipslam.render.cpu.backend import (MAX_ROWS, MODE_IDS, SUPPORTED_CHANNELS, CpuImage, FootprintProjection,
                                         PoseOnlyRender, align_direct, pose_only_unsupported_reason,
                                         project_footprints, rasterize, rasterize_pose_only, rasterize_projected, rasterize_unfused,
-                                        reference_footprints, unsupported_reason)
+                                        reference_footprints, rgbd_l1_loss_and_gradients, unsupported_reason)
 from mipslam.render.cpu.library import (KernelTimes, Library, is_available, load_extension, profile_kernels,
                                         unavailable_reason, warm_up)
 
@@ -37,4 +39,4 @@ __all__ = ["is_available", "unavailable_reason", "unsupported_reason", "load_ext
            "rasterize_unfused", "rasterize_projected", "RasterizeProjected", "ProjectFootprints",
            "project_footprints", "reference_footprints", "FootprintProjection", "CpuImage", "profile_kernels",
            "KernelTimes", "Library", "MODE_IDS", "SUPPORTED_CHANNELS", "MAX_ROWS", "align_direct",
-           "rasterize_pose_only", "pose_only_unsupported_reason", "PoseOnlyRender"]
+           "rasterize_pose_only", "pose_only_unsupported_reason", "PoseOnlyRender", "rgbd_l1_loss_and_gradients"]

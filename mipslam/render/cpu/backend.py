@@ -11,6 +11,7 @@ import torch
 from mipslam.errors import BackendUnavailableError, RenderError
 from mipslam.geometry import direct as direct_reference
 from mipslam.geometry.se3 import _SERIES_ANGLE_SQ
+from mipslam.losses import photometric
 from mipslam.render import footprint, projection
 from mipslam.render.cpu.autograd import (ProjectFootprints, RasterizeProjected, _gauss_legendre_f32,
                                          _opacity_has_pose_gradient, _params_for)
@@ -293,3 +294,48 @@ def align_direct(references, targets, T_init: torch.Tensor, *, iterations: int, 
                                                           torch.get_num_threads())
     return direct_reference.DirectResult(T=T, iterations=steps, points=points,
                                          ok=ran and bool(torch.isfinite(T).all()))
+
+
+def rgbd_l1_loss_and_gradients(color: torch.Tensor, depth: torch.Tensor, color_gt: torch.Tensor,
+                               depth_gt: torch.Tensor, *, alpha_color: float, masks: "photometric.RGBDMasks",
+                               exposure: tuple[torch.Tensor, torch.Tensor] | None = None,
+                               depth_alpha: torch.Tensor | None = None,
+                               depth_alpha_floor: float = photometric.DEFAULT_DEPTH_ALPHA_FLOOR,
+                               depth_outlier_ratio: float = 0.0, gradients: bool = True,
+                               ) -> tuple["photometric.RGBDLoss", "photometric.RGBDLossGradients | None"]:
+    """:func:`mipslam.losses.photometric.rgbd_l1_loss_and_gradients` in one pass of the compiled library
+    (rgbd_loss.h): the same arguments (CPU float32 images: colour [H, W, C], depth and ``depth_alpha`` [H, W]
+    metres and opacity, masks [H, W] bool); ``gradients=False`` computes the loss alone (None in its place).
+
+    The gradient images are the reference's bit for bit; the loss and the exposure's gradients are float64
+    sums, equal to the reference's float32 ones to rounding (tests/test_rgbd_loss_compiled.py). About thirty
+    tensor operations become one library call: 0.5-0.9 ms less per 160x120 render, a dozen of which tracking
+    evaluates per frame."""
+    photometric.check_rgbd_loss_inputs("rgbd_l1_loss_and_gradients", color, depth, color_gt, depth_gt, alpha_color)
+    if depth_alpha is not None and (depth_alpha.shape != depth.shape or not 0.0 < depth_alpha_floor <= 1.0):
+        raise ValueError(f"rgbd_l1_loss_and_gradients: opacity {tuple(depth_alpha.shape)} must match depth "
+                         f"{tuple(depth.shape)} and the floor {depth_alpha_floor} be in (0, 1]")
+    depth_mask = masks.depth
+    if depth_outlier_ratio > 0:  # the median-based inlier test stays in torch, on the depth the term compares
+        compared = depth if depth_alpha is None else photometric.normalised_depth(depth, depth_alpha, depth_alpha_floor)
+        depth_mask = photometric.depth_inlier_mask(compared, depth_gt, depth_mask, depth_outlier_ratio)
+    affine = None
+    if exposure is not None:
+        log_gain, bias = exposure
+        if log_gain.dim() != 0 or bias.dim() != 0:
+            raise ValueError("rgbd_l1_loss_and_gradients: a scalar exposure model (log_gain [] and bias []) only")
+        affine = (float(torch.exp(log_gain.detach())), float(bias.detach()))
+    out, counts, grad_color, grad_depth = load_extension().rgbd_l1(
+        color.detach().contiguous(), depth.detach().contiguous(),
+        None if depth_alpha is None else depth_alpha.detach().contiguous(), color_gt.contiguous(),
+        depth_gt.contiguous(), masks.color.to(torch.bool).contiguous(), depth_mask.to(torch.bool).contiguous(),
+        alpha_color=alpha_color, exposure=affine, depth_normalise=depth_alpha is not None,
+        depth_alpha_floor=depth_alpha_floor, gradients=gradients)
+    num_color, num_depth = counts.tolist()
+    loss = photometric.RGBDLoss(total=out[0], color=out[1], depth=out[2], num_color_pixels=num_color,
+                                num_depth_pixels=num_depth)
+    if not gradients:
+        return loss, None
+    return loss, photometric.RGBDLossGradients(color=grad_color, depth=grad_depth,
+                                               log_gain=None if affine is None else out[3],
+                                               bias=None if affine is None else out[4])

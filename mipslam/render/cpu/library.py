@@ -30,7 +30,7 @@ from mipslam.errors import BackendUnavailableError, RenderError
 log = logging.getLogger("mipslam.render.cpu")
 
 #: The C interface version this module speaks (mipslam_abi_version in raster_ext.cpp).
-ABI_VERSION = 4
+ABI_VERSION = 5
 _ERROR_BYTES = 2048
 _ERR_VALUE, _ERR_MEMORY = 1, 3
 REBUILD_HINT = "run ./scripts/setup or python -m mipslam.render.cpu.build"
@@ -53,6 +53,7 @@ _SIGNATURES = {
     "mipslam_vector_math": ([_p, _p, _i64, _i64], None),
     "mipslam_direct_align": ([_i64] + [_p] * 7 + [_i64, _f64, _f64, _p, _i64, ctypes.c_int, _p, _p, _p, _i64],
                              ctypes.c_int),
+    "mipslam_rgbd_l1": ([_p] * 7 + [_i64, _i64, _f64, _i64, _f64, _f64, _i64, _f64] + [_p] * 4, ctypes.c_int),
     "mipslam_guided_match": ([_p, _i64, _p, _p, _i64, _f64, _p, _p, _i64, _f64, _i64, _p, _p, _p, _i64], ctypes.c_int),
 }
 
@@ -235,6 +236,36 @@ class Library:
                    projection_ids.ctypes.data, len(projections), float(limit), query.ctypes.data, train.ctypes.data,
                    len(train), float(ratio), int(max_hamming), pairs.ctypes.data, count.ctypes.data)
         return pairs[: int(count[0])].copy()
+
+    # --- the masked RGB-D L1 loss (rgbd_loss.h) -------------------------------------------------------
+    def rgbd_l1(self, color, depth, alpha, color_gt, depth_gt, mask_color, mask_depth, *, alpha_color: float,
+                exposure: tuple[float, float] | None, depth_normalise: bool, depth_alpha_floor: float,
+                gradients: bool):
+        """The loss of rgbd_loss.h: color, color_gt [H, W, C], depth, depth_gt [H, W] float32, alpha [H, W] float32
+        (None without ``depth_normalise``), masks [H, W] bool; ``exposure`` (gain, bias) as float32 values or None. -> (out [5] float32: total, colour term, depth
+        term, d/d log_gain, d/d bias; counts [2] int64: colour and depth pixels; grad_color [H, W, C] and
+        grad_depth [H, W], or None without ``gradients``)."""
+        height, width, channels = color.shape
+        if depth_normalise and alpha is None:
+            raise RuntimeError("mipslam rgbd_l1: depth_normalise needs the render's opacity")
+        for t, name, dtype, shape in ((color, "color", torch.float32, (height, width, channels)),
+                                      (color_gt, "color_gt", torch.float32, (height, width, channels)),
+                                      (depth, "depth", torch.float32, (height, width)),
+                                      (alpha, "alpha", torch.float32, (height, width)),
+                                      (depth_gt, "depth_gt", torch.float32, (height, width)),
+                                      (mask_color, "mask_color", torch.bool, (height, width)),
+                                      (mask_depth, "mask_depth", torch.bool, (height, width))):
+            if t is not None:
+                _check(t, name, dtype, shape)
+        out, counts = torch.empty(5, dtype=torch.float32), torch.empty(2, dtype=torch.int64)
+        grad_color = torch.empty_like(color) if gradients else None
+        grad_depth = torch.empty_like(depth) if gradients else None
+        gain, bias = (1.0, 0.0) if exposure is None else exposure
+        self._call(self._lib.mipslam_rgbd_l1, *map(_ptr, (color, depth, alpha, color_gt, depth_gt, mask_color,
+                                                          mask_depth)), height * width, channels, float(alpha_color),
+                   int(exposure is not None), float(gain), float(bias), int(depth_normalise),
+                   float(depth_alpha_floor), _ptr(out), _ptr(counts), _ptr(grad_color), _ptr(grad_depth))
+        return out, counts, grad_color, grad_depth
 
     # --- tile rasterizer ------------------------------------------------------------------------------
     @staticmethod

@@ -24,6 +24,7 @@
 #include "feature_match.h"
 #include "footprint_simd.h"
 #include "projection.h"
+#include "rgbd_loss.h"
 #include "simd_math.h"
 
 #ifdef _OPENMP
@@ -828,7 +829,7 @@ int guarded(char* err, int64_t err_len, F&& body) {
 #endif
 
 // Bumped whenever a signature below changes (library.py refuses a library of another version).
-MIPSLAM_API int mipslam_abi_version(void) { return 4; }
+MIPSLAM_API int mipslam_abi_version(void) { return 5; }
 
 // Hash of the sources and flags the library was built from (mipslam/render/cpu/build.py, source_hash), also
 // readable from the file without loading it (the marker).
@@ -1074,5 +1075,27 @@ MIPSLAM_API int mipslam_guided_match(const double* keypoints, int64_t M, const d
                           " names reference point ", projection_ids[j], " of ", N);
         count[0] = feature_match::guided_match(keypoints, M, projections, projection_ids, P, limit, query, train, N,
                                                ratio, max_hamming, pairs);
+    });
+}
+
+// The masked RGB-D L1 loss of a render and its gradients (rgbd_loss.h): images [H, W, C] and [H, W] float32, masks
+// [H, W] bool (alpha read only with depth_normalise); settings alpha_color, gain, bias, depth_alpha_floor; flags
+// exposure and depth_normalise. out [5] float32 (total, colour term, depth term, d/d log_gain, d/d bias), counts [2] int64;
+// grad_color [H, W, C] and grad_depth [H, W] float32, or null for the loss alone.
+MIPSLAM_API int mipslam_rgbd_l1(const float* color, const float* depth, const float* alpha, const float* color_gt,
+                                const float* depth_gt, const uint8_t* mask_color, const uint8_t* mask_depth,
+                                int64_t pixels, int64_t channels, double alpha_color, int64_t exposure, double gain, double bias, int64_t depth_normalise,
+                                double depth_alpha_floor, float* out, int64_t* counts, float* grad_color,
+                                float* grad_depth, char* err, int64_t err_len) {
+    using namespace mipslam_cpu;
+    return guarded(err, err_len, [&] {
+        MIPSLAM_CHECK(pixels >= 0 && channels >= 1, "mipslam_rgbd_l1: bad sizes");
+        MIPSLAM_CHECK_VALUE(alpha_color >= 0.0 && alpha_color <= 1.0, "mipslam_rgbd_l1: alpha_color ", alpha_color,
+                            " is not in [0, 1]");
+        const rgbd_loss::Images images{color, depth, alpha, color_gt, depth_gt, mask_color, mask_depth, pixels,
+                                       channels};
+        const rgbd_loss::Options options{(float)alpha_color, (float)(1.0 - alpha_color), exposure != 0 ? 1 : 0, (float)gain, (float)bias, depth_normalise != 0 ? 1 : 0,
+                                         (float)depth_alpha_floor};
+        rgbd_loss::evaluate(images, options, out, counts, grad_color, grad_depth);
     });
 }
