@@ -111,6 +111,11 @@ def test_the_dispatch_takes_the_library_only_where_it_may(backend, monkeypatch):
     loss64, _ = render.rgbd_loss_and_gradients(backend, color.double(), depth.double(), color_gt.double(),
                                                depth_gt.double(), alpha_color=0.5, masks=masks)
     assert loss64.total.dtype == torch.float64 and len(calls) <= 1
+    # nor do colour channel counts the library is not compiled for
+    two = rgbd_masks(color_gt[..., :2], depth_gt)
+    render.rgbd_loss_and_gradients(backend, color[..., :2].contiguous(), depth, color_gt[..., :2].contiguous(),
+                                   depth_gt, alpha_color=0.5, masks=two)
+    assert len(calls) <= 1
     _, none = render.rgbd_loss_and_gradients(backend, color, depth, color_gt, depth_gt, alpha_color=0.5, masks=masks,
                                              gradients=False)
     assert none is None

@@ -199,11 +199,11 @@ def rgbd_loss_and_gradients(backend: str, color: torch.Tensor, depth: torch.Tens
     """A render's masked RGB-D L1 loss and its gradients (:func:`mipslam.losses.photometric.rgbd_l1_loss_and_gradients`,
     whose keyword arguments ``terms`` are): in one pass of the compiled library
     (:func:`mipslam.render.cpu.backend.rgbd_l1_loss_and_gradients`) where ``backend`` (``render.backend``) takes
-    it, it is built and the images are CPU float32, else in torch. -> (RGBDLoss, RGBDLossGradients, or None
-    with ``gradients=False``)."""
+    it, it is built and the images are CPU float32 with 1, 3 or 4 colour channels, else in torch. -> (RGBDLoss,
+    RGBDLossGradients, or None with ``gradients=False``)."""
     cpu = (_cpu_backend_module() if backend != "torch" and color.device.type == "cpu" and color.dtype == torch.float32
-           else None)
-    if cpu is not None:
+           and color.dim() == 3 else None)
+    if cpu is not None and color.shape[-1] in cpu.SUPPORTED_CHANNELS:
         return cpu.rgbd_l1_loss_and_gradients(color, depth, color_gt, depth_gt, gradients=gradients, **terms)
     from mipslam.losses.photometric import rgbd_l1_loss_and_gradients
 

@@ -242,9 +242,9 @@ class Library:
                 exposure: tuple[float, float] | None, depth_normalise: bool, depth_alpha_floor: float,
                 gradients: bool):
         """The loss of rgbd_loss.h: color, color_gt [H, W, C], depth, depth_gt [H, W] float32, alpha [H, W] float32
-        (None without ``depth_normalise``), masks [H, W] bool; ``exposure`` (gain, bias) as float32 values or None. -> (out [5] float32: total, colour term, depth
-        term, d/d log_gain, d/d bias; counts [2] int64: colour and depth pixels; grad_color [H, W, C] and
-        grad_depth [H, W], or None without ``gradients``)."""
+        (None without ``depth_normalise``), masks [H, W] bool; ``exposure`` (gain, bias) as float32 values or None.
+        -> (out [5] float32: total, colour term, depth term, d/d log_gain, d/d bias; counts [2] int64: colour and
+        depth pixels; grad_color [H, W, C] and grad_depth [H, W], or None without ``gradients``)."""
         height, width, channels = color.shape
         if depth_normalise and alpha is None:
             raise RuntimeError("mipslam rgbd_l1: depth_normalise needs the render's opacity")

@@ -1080,16 +1080,17 @@ MIPSLAM_API int mipslam_guided_match(const double* keypoints, int64_t M, const d
 
 // The masked RGB-D L1 loss of a render and its gradients (rgbd_loss.h): images [H, W, C] and [H, W] float32, masks
 // [H, W] bool (alpha read only with depth_normalise); settings alpha_color, gain, bias, depth_alpha_floor; flags
-// exposure and depth_normalise. out [5] float32 (total, colour term, depth term, d/d log_gain, d/d bias), counts [2] int64;
-// grad_color [H, W, C] and grad_depth [H, W] float32, or null for the loss alone.
+// exposure and depth_normalise. out [5] float32 (total, colour term, depth term, d/d log_gain, d/d bias), counts
+// [2] int64; grad_color [H, W, C] and grad_depth [H, W] float32, or null for the loss alone.
 MIPSLAM_API int mipslam_rgbd_l1(const float* color, const float* depth, const float* alpha, const float* color_gt,
                                 const float* depth_gt, const uint8_t* mask_color, const uint8_t* mask_depth,
-                                int64_t pixels, int64_t channels, double alpha_color, int64_t exposure, double gain, double bias, int64_t depth_normalise,
-                                double depth_alpha_floor, float* out, int64_t* counts, float* grad_color,
-                                float* grad_depth, char* err, int64_t err_len) {
+                                int64_t pixels, int64_t channels, double alpha_color, int64_t exposure, double gain,
+                                double bias, int64_t depth_normalise, double depth_alpha_floor, float* out,
+                                int64_t* counts, float* grad_color, float* grad_depth, char* err, int64_t err_len) {
     using namespace mipslam_cpu;
     return guarded(err, err_len, [&] {
         MIPSLAM_CHECK(pixels >= 0 && channels >= 1, "mipslam_rgbd_l1: bad sizes");
+        MIPSLAM_CHECK(depth_normalise == 0 || alpha != nullptr, "mipslam_rgbd_l1: depth_normalise needs the opacity");
         MIPSLAM_CHECK_VALUE(alpha_color >= 0.0 && alpha_color <= 1.0, "mipslam_rgbd_l1: alpha_color ", alpha_color,
                             " is not in [0, 1]");
         const rgbd_loss::Images images{color, depth, alpha, color_gt, depth_gt, mask_color, mask_depth, pixels,
