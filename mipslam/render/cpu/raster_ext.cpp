@@ -1095,7 +1095,8 @@ MIPSLAM_API int mipslam_rgbd_l1(const float* color, const float* depth, const fl
                             " is not in [0, 1]");
         const rgbd_loss::Images images{color, depth, alpha, color_gt, depth_gt, mask_color, mask_depth, pixels,
                                        channels};
-        const rgbd_loss::Options options{(float)alpha_color, (float)(1.0 - alpha_color), exposure != 0 ? 1 : 0, (float)gain, (float)bias, depth_normalise != 0 ? 1 : 0,
+        const rgbd_loss::Options options{(float)alpha_color, (float)(1.0 - alpha_color), exposure != 0 ? 1 : 0,
+                                         (float)gain, (float)bias, depth_normalise != 0 ? 1 : 0,
                                          (float)depth_alpha_floor};
         rgbd_loss::evaluate(images, options, out, counts, grad_color, grad_depth);
     });

@@ -92,13 +92,19 @@ static inline __attribute__((always_inline)) vf signed_weight(vf r, float w) {
 }
 
 // LANES flat values of a term from `first` on (fewer at the end: `valid` of them), as vectors; lanes past the
-// end read 0 and their mask is false.
-template <int C>
+// end read 0 and their mask is false, and are never stored.
 static inline __attribute__((always_inline)) vf load_part(const float* x, int64_t first, int valid) {
     if (valid == LANES) return load(x + first);
     vf v = splat(0.f);
     for (int j = 0; j < valid; ++j) v[j] = x[first + j];
     return v;
+}
+
+static inline __attribute__((always_inline)) void store_part(float* x, int64_t first, int valid, vf v) {
+    if (valid == LANES)
+        store(x + first, v);
+    else
+        for (int j = 0; j < valid; ++j) x[first + j] = v[j];
 }
 
 template <int C>
@@ -117,22 +123,16 @@ static void colour_term(const Images& im, const Options& o, float w, double* sum
     const vf gain = splat(o.gain), bias = splat(o.bias);
     for (int64_t k = 0; k < n; k += LANES) {
         const int valid = (int)std::min<int64_t>(LANES, n - k);
-        const vf rendered = load_part<C>(im.color, k, valid);
+        const vf rendered = load_part(im.color, k, valid);
         const vf corrected = EXPOSURE ? rounded_product(gain, rendered) + bias : rendered;
-        const vf r = keep(mask_part<C>(im.mask_color, k, valid), corrected - load_part<C>(im.color_gt, k, valid));
+        const vf r = keep(mask_part<C>(im.mask_color, k, valid), corrected - load_part(im.color_gt, k, valid));
         const vf g = signed_weight(r, w);
         s_abs.add(vabs(r));
         if (EXPOSURE) {
             s_gain.add(rounded_product(g, rendered));
             s_bias.add(g);
         }
-        if (GRAD) {
-            const vf out = EXPOSURE ? g * gain : g;
-            if (valid == LANES)
-                store(grad + k, out);
-            else
-                for (int j = 0; j < valid; ++j) grad[k + j] = out[j];
-        }
+        if (GRAD) store_part(grad, k, valid, EXPOSURE ? g * gain : g);
     }
     sums[0] = s_abs.sum();
     sums[1] = s_gain.sum();
@@ -146,23 +146,15 @@ static double depth_term(const Images& im, const Options& o, float w, float* gra
     const vf floor = splat(o.depth_alpha_floor);
     for (int64_t p = 0; p < im.pixels; p += LANES) {
         const int valid = (int)std::min<int64_t>(LANES, im.pixels - p);
-        vf rendered = load_part<1>(im.depth, p, valid), divisor = splat(1.f);
+        vf rendered = load_part(im.depth, p, valid), divisor = splat(1.f);
         if (NORMALISE) {
-            const vf alpha = load_part<1>(im.alpha, p, valid);
-            divisor = select(alpha < floor, floor, alpha);  // torch's clamp(min=floor)
-            if (valid < LANES)
-                for (int j = valid; j < LANES; ++j) divisor[j] = 1.f;
+            const vf alpha = load_part(im.alpha, p, valid);
+            divisor = select(alpha < floor, floor, alpha);  // torch's clamp(min=floor); padded lanes take the floor
             rendered = rendered / divisor;
         }
-        const vf r = keep(mask_part<1>(im.mask_depth, p, valid), rendered - load_part<1>(im.depth_gt, p, valid));
+        const vf r = keep(mask_part<1>(im.mask_depth, p, valid), rendered - load_part(im.depth_gt, p, valid));
         s_abs.add(vabs(r));
-        if (GRAD) {
-            const vf out = NORMALISE ? signed_weight(r, w) / divisor : signed_weight(r, w);
-            if (valid == LANES)
-                store(grad + p, out);
-            else
-                for (int j = 0; j < valid; ++j) grad[p + j] = out[j];
-        }
+        if (GRAD) store_part(grad, p, valid, NORMALISE ? signed_weight(r, w) / divisor : signed_weight(r, w));
     }
     return s_abs.sum();
 }
