@@ -373,11 +373,16 @@ def normalised_depth(
 
 def _depth_divisor(depth: torch.Tensor, alpha: torch.Tensor, floor: float) -> torch.Tensor:
     """:func:`normalised_depth`'s checks and divisor ``stopgrad(max(A, floor))`` [H, W]."""
+    check_depth_alpha(depth, alpha, floor)
+    return alpha.detach().clamp(min=floor)
+
+
+def check_depth_alpha(depth: torch.Tensor, alpha: torch.Tensor, floor: float) -> None:
+    """:func:`normalised_depth`'s argument checks: ``alpha`` [H, W] the shape of ``depth``, ``floor`` in (0, 1]."""
     if depth.shape != alpha.shape:
         raise ValueError(f"normalised_depth: depth {tuple(depth.shape)} and opacity {tuple(alpha.shape)} differ")
     if not 0.0 < floor <= 1.0:
         raise ValueError(f"normalised_depth: floor must be in (0, 1], got {floor}")
-    return alpha.detach().clamp(min=floor)
 
 
 def depth_inlier_mask(

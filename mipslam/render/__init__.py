@@ -205,8 +205,11 @@ def rgbd_loss_and_gradients(backend: str, color: torch.Tensor, depth: torch.Tens
            and color.dim() == 3 else None)
     if cpu is not None and color.shape[-1] in cpu.SUPPORTED_CHANNELS:
         return cpu.rgbd_l1_loss_and_gradients(color, depth, color_gt, depth_gt, gradients=gradients, **terms)
-    from mipslam.losses.photometric import rgbd_l1_loss_and_gradients
+    from mipslam.losses.photometric import rgbd_l1_loss, rgbd_l1_loss_and_gradients
 
+    if not gradients and terms.get("exposure") is None:  # the loss alone: no gradient images to build and drop
+        with torch.no_grad():
+            return rgbd_l1_loss(color, depth, color_gt, depth_gt, **terms), None
     loss, grads = rgbd_l1_loss_and_gradients(color, depth, color_gt, depth_gt, **terms)
     return loss, grads if gradients else None
 
