@@ -191,17 +191,21 @@ class Mapper:
     # ------------------------------------------------------------------ optimisation
 
     def view_loss(self, gmap: GaussianMap, view: MappingView, T_cw: torch.Tensor,
-                  masks: RGBDMasks | None = None, rows: torch.Tensor | None = None) -> torch.Tensor:
+                  masks: RGBDMasks | None = None, rows: torch.Tensor | None = None, *,
+                  final: bool = False) -> torch.Tensor:
         """The mapping loss of one view (module docstring), differentiable w.r.t. the map and ``T_cw`` [4, 4]
         (world-to-camera, the map's dtype and device). Returns a scalar tensor.
 
         What :meth:`optimize` computes once per view and passes in: ``masks``, the view's
         :func:`rgbd_masks` (they depend on the targets alone), and ``rows`` [M] int64, the Gaussians
         the view can draw (:func:`frustum_indices`); the others would get zero gradients anyway.
+        ``final``: a step of the final refinement (``mapping.freq_moves_geometry`` "final" applies).
         """
         cfg = self.config
         g = gmap.activated(rows)
-        out = render_view(g, T_cw, view.intrinsics, self.render_config)
+        appearance = cfg.lambda_freq > 0 and not (cfg.freq_moves_geometry == "always"
+                                                  or (final and cfg.freq_moves_geometry == "final"))
+        out = render_view(g, T_cw, view.intrinsics, self.render_config, appearance_color=appearance)
         color = apply_affine_exposure(out.color, view.exposure[0], view.exposure[1])
         if masks is None:
             masks = view.masks if view.masks is not None else rgbd_masks(view.color, view.depth,
@@ -215,6 +219,8 @@ class Mapper:
             scales = g.scales if rows is None else torch.exp(gmap.log_scales)
             loss = loss + cfg.isotropy_weight * isotropy_loss(scales)
         if cfg.lambda_freq > 0:
+            if appearance:  # the same values, whose gradient reaches the colours alone (MappingConfig)
+                color = apply_affine_exposure(out.color_appearance, view.exposure[0], view.exposure[1])
             loss = loss + cfg.lambda_freq * frequency_loss(color, view.color, patch_size=cfg.freq_patch,
                                                            alpha=cfg.freq_alpha, mask=masks.color)
         return loss
@@ -272,7 +278,7 @@ class Mapper:
         losses = []
         for view in views:
             T_cw = se3_inverse(view.T_wc).to(device=gmap.device, dtype=gmap.dtype)
-            loss = self.view_loss(gmap, view, T_cw, *self._view_inputs(gmap, view, T_cw))
+            loss = self.view_loss(gmap, view, T_cw, *self._view_inputs(gmap, view, T_cw), final=True)
             if not torch.isfinite(loss):
                 break
             optimizer.zero_grad()

@@ -30,6 +30,7 @@ def render_view(
     mode: str | None = None,
     pose_only: bool = False,
     normalized_depth: bool = False,
+    appearance_color: bool = False,
 ) -> RenderOutput:
     """Render the map at ``intrinsics`` from ``T_cw`` with the configured footprint mode and backend.
 
@@ -44,7 +45,8 @@ def render_view(
     return rasterize(
         gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.colors,
         T_cw, K, intrinsics.width, intrinsics.height, mode=mode or config.mode, backend=config.backend,
-        pose_only=pose_only, normalized_depth=normalized_depth, max_sampling_rate=rates, **render_options(config),
+        pose_only=pose_only, normalized_depth=normalized_depth, appearance_color=appearance_color,
+        max_sampling_rate=rates, **render_options(config),
     )
 
 

@@ -48,6 +48,8 @@ class RenderOptions:
     max_sampling_rate [N] px/metre per Gaussian for the 3D filter (None: max(fx, fy) / z of this camera)
     pose_only         gradients for viewmat only: the Gaussian parameters are detached (tracking)
     normalized_depth  also return depth / alpha
+    appearance_color  also return color_appearance: the colour image again, whose gradient reaches the colours
+                      alone (an appearance loss that must not move the geometry or the camera)
     exact_order       Gauss-Legendre order per axis of ``exact`` mode
     tile_size         tile edge in pixels
     pair_budget       max padded (tile pixel x Gaussian x node) evaluations per batch (memory bound)
@@ -66,6 +68,7 @@ class RenderOptions:
     max_sampling_rate: torch.Tensor | None = None
     pose_only: bool = False
     normalized_depth: bool = False
+    appearance_color: bool = False
     exact_order: int = 20
     tile_size: int = 8
     pair_budget: int = 1 << 20
@@ -128,6 +131,8 @@ class RenderOutput:
     n_visible        int
     depths           [N] metres camera-frame z (0 where not visible)
     mode, backend    str
+    color_appearance [H, W, C]  the values of color; its gradient reaches the colours only, as if it were
+                                rendered with the geometry and the camera held fixed (None unless asked)
     """
 
     color: torch.Tensor
@@ -141,6 +146,7 @@ class RenderOutput:
     depths: torch.Tensor
     mode: str
     backend: str
+    color_appearance: torch.Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -333,7 +339,7 @@ def rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width: 
                                  gamma=opts.eaa_gamma, eta=opts.eaa_eta, tau=opts.eaa_tau,
                                  single_node_sigma=opts.eaa_single_node_sigma, exact_order=opts.exact_order)
     image = rasterizer(proj, width, height, settings, tile_size=opts.tile_size, pair_budget=opts.pair_budget,
-                       checkpoint=opts.checkpoint)
+                       checkpoint=opts.checkpoint, appearance=opts.appearance_color)
     depth_normalized = None
     if opts.normalized_depth:
         has_alpha = image.alpha > 1e-6
@@ -345,7 +351,8 @@ def rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width: 
         radii = torch.where(proj.visible, ext + (0.5 if box_mode else 0.0), torch.zeros_like(ext))
     return RenderOutput(color=image.color, depth=image.depth, alpha=image.alpha, depth_normalized=depth_normalized,
                         means2d=proj.means2d, radii=radii, visible=proj.visible,
-                        n_visible=int(proj.visible.sum()), depths=proj.depths, mode=mode, backend="torch")
+                        n_visible=int(proj.visible.sum()), depths=proj.depths, mode=mode, backend="torch",
+                        color_appearance=image.color_appearance)
 
 
 def render(gaussians, camera: Camera, *, mode: str = "eaa", backend: str = "auto", **options) -> RenderOutput:

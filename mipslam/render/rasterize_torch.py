@@ -24,7 +24,7 @@ import torch
 from torch.utils.checkpoint import checkpoint as torch_checkpoint
 
 from mipslam.render import footprint
-from mipslam.render.composite import composite
+from mipslam.render.composite import blend_weights, clamp_alpha, composite
 from mipslam.render.projection import ProjectedGaussians
 
 
@@ -48,11 +48,13 @@ class FootprintSettings:
 
 @dataclass(frozen=True)
 class TiledImage:
-    """Raw rasterizer output.  color [H, W, C], depth [H, W], alpha [H, W]"""
+    """Raw rasterizer output.  color [H, W, C], depth [H, W], alpha [H, W]; color_appearance [H, W, C] or None
+    (``appearance``: the colour again, composited with the blending weights detached)"""
 
     color: torch.Tensor
     depth: torch.Tensor
     alpha: torch.Tensor
+    color_appearance: torch.Tensor | None = None
 
 
 def bin_gaussians(means2d: torch.Tensor, ext_x: torch.Tensor, ext_y: torch.Tensor, tiles_x: int, tiles_y: int,
@@ -145,19 +147,27 @@ def batch_pixel_opacity(settings: FootprintSettings, pix_x, pix_y, mean_x, mean_
     return dense.index_put((b, p, l), values)
 
 
-def _render_batch(settings: FootprintSettings, pix_x, pix_y, mean_x, mean_y, cov_xx, cov_xy, cov_yy, cov_det,
-                  opacity, depth, colors, node_counts):
-    """One batch of tiles: pix_* [B, P, 1]; per-Gaussian [B, 1, L]; colors [B, L, C] -> [B, P, C+2]."""
+def _render_batch(settings: FootprintSettings, appearance: bool, pix_x, pix_y, mean_x, mean_y, cov_xx, cov_xy,
+                  cov_yy, cov_det, opacity, depth, colors, node_counts):
+    """One batch of tiles: pix_* [B, P, 1]; per-Gaussian [B, 1, L]; colors [B, L, C] -> [B, P, C+2], and with
+    ``appearance`` C more channels: the colour composited with detached weights (its gradient reaches the colours
+    only)."""
     a = batch_pixel_opacity(settings, pix_x, pix_y, mean_x, mean_y, cov_xx, cov_xy, cov_yy, cov_det, opacity,
                             node_counts)  # [B, P, L]
     color, depth_img, alpha = composite(a, colors.unsqueeze(1), depth)
-    return torch.cat([color, depth_img.unsqueeze(-1), alpha.unsqueeze(-1)], -1)
+    parts = [color, depth_img.unsqueeze(-1), alpha.unsqueeze(-1)]
+    if appearance:
+        weights = blend_weights(clamp_alpha(a.detach()))  # [B, P, L], the values composite used
+        parts.append((weights.unsqueeze(-1) * colors.unsqueeze(1)).sum(-2))
+    return torch.cat(parts, -1)
 
 
 def rasterize_projected(proj: ProjectedGaussians, width: int, height: int, settings: FootprintSettings, *,
                         tile_size: int = 8, pair_budget: int = 1 << 20,
-                        checkpoint: bool | None = None) -> TiledImage:
+                        checkpoint: bool | None = None, appearance: bool = False) -> TiledImage:
     """Rasterize projected Gaussians (those with ``proj.visible``) into an image.
+
+    ``appearance``: also the colour image whose gradient reaches ``proj.colors`` alone (:class:`TiledImage`).
 
     ``checkpoint=None`` turns checkpointing on when autograd records and the padded work of all batches
     exceeds ``CHECKPOINT_WORK`` evaluations (about a gigabyte of saved tensors); memory then stays
@@ -165,6 +175,7 @@ def rasterize_projected(proj: ProjectedGaussians, width: int, height: int, setti
     """
     dtype, device = proj.means2d.dtype, proj.means2d.device
     channels = proj.colors.shape[-1]
+    planes = 2 * channels + 2 if appearance else channels + 2  # colour, depth, alpha (, appearance colour)
     tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
     num_tiles = tiles_x * tiles_y
     pixels_per_tile = tile_size * tile_size
@@ -230,13 +241,13 @@ def rasterize_projected(proj: ProjectedGaussians, width: int, height: int, setti
         if settings.mode == "eaa":  # evaluate only as many rows as this batch's Gaussians need
             batch_settings = FootprintSettings(**{**settings_batch.__dict__, "max_nodes": int(g_nodes[g].max())})
         if checkpoint and torch.is_grad_enabled():
-            out = torch_checkpoint(_render_batch, batch_settings, *args, use_reentrant=False)
+            out = torch_checkpoint(_render_batch, batch_settings, appearance, *args, use_reentrant=False)
         else:
-            out = _render_batch(batch_settings, *args)
+            out = _render_batch(batch_settings, appearance, *args)
         results.append(out)
         done_tiles.append(tiles)
 
-    canvas = torch.zeros(num_tiles, pixels_per_tile, channels + 2, dtype=dtype, device=device)
+    canvas = torch.zeros(num_tiles, pixels_per_tile, planes, dtype=dtype, device=device)
     if results:
         canvas = canvas.index_copy(0, torch.cat(done_tiles), torch.cat(results))
     elif torch.is_grad_enabled():
@@ -245,6 +256,7 @@ def rasterize_projected(proj: ProjectedGaussians, width: int, height: int, setti
         anchor = proj.means2d.sum() + proj.cov2d.sum() + proj.cov_det.sum() + proj.opacities.sum() \
             + proj.colors.sum() + proj.depths.sum()
         canvas = canvas + 0.0 * anchor
-    image = canvas.view(tiles_y, tiles_x, tile_size, tile_size, channels + 2).permute(0, 2, 1, 3, 4)
-    image = image.reshape(tiles_y * tile_size, tiles_x * tile_size, channels + 2)[:height, :width]
-    return TiledImage(color=image[..., :channels], depth=image[..., channels], alpha=image[..., channels + 1])
+    image = canvas.view(tiles_y, tiles_x, tile_size, tile_size, planes).permute(0, 2, 1, 3, 4)
+    image = image.reshape(tiles_y * tile_size, tiles_x * tile_size, planes)[:height, :width]
+    return TiledImage(color=image[..., :channels], depth=image[..., channels], alpha=image[..., channels + 1],
+                      color_appearance=image[..., channels + 2:] if appearance else None)

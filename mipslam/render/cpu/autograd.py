@@ -107,15 +107,17 @@ class RasterizeProjected(torch.autograd.Function):
 
     Inputs (float32, contiguous): means2d [N, 2] px, cov [N, 4] (xx, xy, yy, det) of the mode's sampling
     covariance, opacity [N] (the mode's), depth [N] metres, colors [N, C]; node_counts [N] int32; then
-    plain settings. Outputs color [H, W, C], depth [H, W], alpha [H, W] and stats [2] int64 (footprint
-    lanes evaluated, (tile, Gaussian) pairs). The backward is the extension's hand-written one; it skips
+    plain settings. Outputs color [H, W, C], depth [H, W], alpha [H, W], stats [2] int64 (footprint
+    lanes evaluated, (tile, Gaussian) pairs) and, with ``appearance``, color_appearance [H, W, C]: the same
+    values as color, whose gradient reaches ``colors`` alone (an appearance loss that must not move the
+    geometry; None without ``appearance``). The backward is the extension's hand-written one; it skips
     the colour sums when ``colors`` needs no gradient and the opacity sums when ``opacity`` needs none
     (pose-only tracking).
     """
 
     @staticmethod
     def forward(ctx, means2d, cov, opacity, depth, colors, node_counts, mode_id: int, width: int, height: int,
-                k_sigma: float, eta: float, tau: float, gl_nodes, gl_weights, threads: int):
+                k_sigma: float, eta: float, tau: float, gl_nodes, gl_weights, threads: int, appearance: bool = False):
         ext = load_extension()
         (color, depth_img, alpha_img, order, tile_offsets, isect_ids, pair_offsets, isect_pos, last,
          stats) = ext.rasterize_forward(means2d, cov, opacity, depth, colors, node_counts, mode_id, width, height,
@@ -124,10 +126,10 @@ class RasterizeProjected(torch.autograd.Function):
         ctx.save_for_backward(means2d, cov, opacity, depth, colors, node_counts, gl_nodes, gl_weights, order,
                               tile_offsets, isect_ids, pair_offsets, isect_pos, last, color, depth_img, alpha_img)
         ctx.mark_non_differentiable(stats)
-        return color, depth_img, alpha_img, stats
+        return color, depth_img, alpha_img, stats, color.clone() if appearance else None
 
     @staticmethod
-    def backward(ctx, grad_color, grad_depth, grad_alpha, _grad_stats):
+    def backward(ctx, grad_color, grad_depth, grad_alpha, _grad_stats, grad_color_appearance=None):
         (means2d, cov, opacity, depth, colors, node_counts, gl_nodes, gl_weights, order, tile_offsets, isect_ids,
          pair_offsets, isect_pos, last, color, depth_img, alpha_img) = ctx.saved_tensors
         mode_id, width, height, k_sigma, eta, tau, threads = ctx.settings
@@ -140,6 +142,7 @@ class RasterizeProjected(torch.autograd.Function):
             means2d, cov, opacity, depth, colors, node_counts, mode_id, width, height, k_sigma, eta, tau, gl_nodes,
             gl_weights, order, tile_offsets, isect_ids, pair_offsets, isect_pos, last, color, depth_img, alpha_img,
             dense(grad_color, color), dense(grad_depth, depth_img), dense(grad_alpha, alpha_img), bool(need[4]),
-            bool(need[2]), threads)
+            bool(need[2]), threads,
+            None if grad_color_appearance is None else grad_color_appearance.contiguous().to(torch.float32))
         return (g_means2d if need[0] else None, g_cov if need[1] else None, g_opacity if need[2] else None,
-                g_depth if need[3] else None, g_colors if need[4] else None) + (None,) * 10
+                g_depth if need[3] else None, g_colors if need[4] else None) + (None,) * 11

@@ -113,7 +113,8 @@ class CpuImage:
     """Raw output of :func:`rasterize_projected`.  color [H, W, C], depth [H, W], alpha [H, W]
 
     ``lanes_evaluated``: footprint evaluations the kernel made (8-pixel row segments x 8), ``pairs``:
-    (tile, Gaussian) pairs after binning.
+    (tile, Gaussian) pairs after binning; ``color_appearance`` [H, W, C] or None: as
+    :class:`~mipslam.render.rasterize_torch.TiledImage`'s.
     """
 
     color: torch.Tensor
@@ -121,9 +122,11 @@ class CpuImage:
     alpha: torch.Tensor
     lanes_evaluated: int
     pairs: int
+    color_appearance: torch.Tensor | None = None
 
 
-def rasterize_projected(proj, width: int, height: int, settings, **_unused) -> CpuImage:
+def rasterize_projected(proj, width: int, height: int, settings, *, appearance: bool = False,
+                        **_unused) -> CpuImage:
     """Drop-in for :func:`mipslam.render.rasterize_torch.rasterize_projected` on the compiled backend.
 
     ``proj``: :class:`~mipslam.render.projection.ProjectedGaussians` (float32, CPU); ``settings``:
@@ -137,12 +140,13 @@ def rasterize_projected(proj, width: int, height: int, settings, **_unused) -> C
                                                               settings.single_node_sigma)
     gl_nodes, gl_weights = _gauss_legendre_f32(settings.exact_order if mode == "exact" else 1)
     cov = torch.stack([xx, xy, yy, det], -1)
-    color, depth, alpha, stats = RasterizeProjected.apply(
+    color, depth, alpha, stats, color_appearance = RasterizeProjected.apply(
         proj.means2d.contiguous(), cov.contiguous(), opacity.contiguous(), proj.depths.contiguous(),
         proj.colors.contiguous(), node_counts.to(torch.int32).contiguous(), MODE_IDS[mode], int(width), int(height),
         float(settings.k_sigma), float(settings.eta), float(settings.tau), gl_nodes, gl_weights,
-        torch.get_num_threads())
-    return CpuImage(color=color, depth=depth, alpha=alpha, lanes_evaluated=int(stats[0]), pairs=int(stats[1]))
+        torch.get_num_threads(), appearance)
+    return CpuImage(color=color, depth=depth, alpha=alpha, lanes_evaluated=int(stats[0]), pairs=int(stats[1]),
+                    color_appearance=color_appearance)
 
 
 def _fused_projection_applies(means, K, options) -> bool:
@@ -179,15 +183,16 @@ def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, h
         means, quats, scales, opacities, viewmat, colors, K, options.max_sampling_rate, width, height,
         _params_for(mode, options), threads)
     gl_nodes, gl_weights = _gauss_legendre_f32(options.exact_order if mode == "exact" else 1)
-    color, depth, alpha, _stats = RasterizeProjected.apply(
+    color, depth, alpha, _stats, color_appearance = RasterizeProjected.apply(
         means2d, cov, opacity, depths, colors.contiguous(), node_counts, MODE_IDS[mode], width, height,
-        float(options.k_sigma), float(options.eaa_eta), float(options.eaa_tau), gl_nodes, gl_weights, threads)
+        float(options.k_sigma), float(options.eaa_eta), float(options.eaa_tau), gl_nodes, gl_weights, threads,
+        options.appearance_color)
     depth_normalized = None
     if options.normalized_depth:
         depth_normalized = torch.where(alpha > 1e-6, depth / alpha.clamp_min(1e-6), torch.zeros_like(depth))
     return RenderOutput(color=color, depth=depth, alpha=alpha, depth_normalized=depth_normalized, means2d=means2d,
                         radii=radii, visible=visible, n_visible=n_visible, depths=depths, mode=mode,
-                        backend="cpu")
+                        backend="cpu", color_appearance=color_appearance)
 
 
 @dataclasses.dataclass(frozen=True)

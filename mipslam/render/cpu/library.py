@@ -30,7 +30,7 @@ from mipslam.errors import BackendUnavailableError, RenderError
 log = logging.getLogger("mipslam.render.cpu")
 
 #: The C interface version this module speaks (mipslam_abi_version in raster_ext.cpp).
-ABI_VERSION = 5
+ABI_VERSION = 6
 _ERROR_BYTES = 2048
 _ERR_VALUE, _ERR_MEMORY = 1, 3
 REBUILD_HINT = "run ./scripts/setup or python -m mipslam.render.cpu.build"
@@ -45,7 +45,7 @@ _SIGNATURES = {
     "mipslam_rasterize_release": ([_p], None),
     "mipslam_rasterize_forward": ([_p, _f64, _f64, _p, _p, _i64] + [_p] * 11 + [_i64], ctypes.c_int),
     "mipslam_rasterize_backward": ([_p] * 6 + [_i64] * 5 + [_f64] * 3 + [_p, _p, _i64, _p, _i64, _p, _p, _i64]
-                                   + [_p] * 9 + [_i64] * 3 + [_p] * 6 + [_i64], ctypes.c_int),
+                                   + [_p] * 10 + [_i64] * 3 + [_p] * 6 + [_i64], ctypes.c_int),
     "mipslam_project_forward": ([_i64] + [_p] * 5 + [_i64, _i64] + [_p] * 3 + [_i64, _i64, _p, _i64, _i64]
                                 + [_p] * 9 + [_i64], ctypes.c_int),
     "mipslam_project_backward": ([_i64] + [_p] * 5 + [_i64, _i64] + [_p] * 3 + [_i64, _i64, _p, _i64] + [_p] * 5
@@ -315,9 +315,12 @@ class Library:
                            height: int, k_sigma: float, eta: float, tau: float, gl_nodes, gl_weights, order,
                            tile_offsets, isect_ids, pair_offsets, isect_pos, last, color, depth_img, alpha_img,
                            grad_color, grad_depth, grad_alpha, need_color_grad: bool, need_opacity_grad: bool,
-                           threads: int):
+                           threads: int, grad_color_appearance: torch.Tensor | None = None):
         """Gradient of sum(grad_color * color + grad_depth * depth + grad_alpha * alpha) with respect to
-        means2d [N, 2], cov [N, 4], opacity [N], depth [N], colors [N, C] (in this order)."""
+        means2d [N, 2], cov [N, 4], opacity [N], depth [N], colors [N, C] (in this order).
+
+        grad_color_appearance [H, W, C] or None: a second colour-image gradient that only the colours take, as if
+        the image it multiplies had been rendered with the geometry held fixed (an appearance-only loss)."""
         n, C = self._raster_inputs(means2d, cov, opacity, depth, colors, node_counts, gl_nodes, gl_weights)
         m, p = order.shape[0], isect_ids.shape[0]
         tiles = ((width + 15) // 16) * ((height + 15) // 16)
@@ -332,6 +335,8 @@ class Library:
                 (grad_depth, "grad_depth", (height, width), torch.float32),
                 (grad_alpha, "grad_alpha", (height, width), torch.float32)):
             _check(t, name, dtype, shape)
+        if grad_color_appearance is not None:
+            _check(grad_color_appearance, "grad_color_appearance", torch.float32, (height, width, C))
         # One zero-filled block, cut into the five contiguous outputs: five torch.zeros of a tracking subset's size
         # cost ten times one (0.7 against 0.07 ms at 80000 Gaussians), on every backward.
         block = torch.zeros(n * (8 + C))
@@ -342,7 +347,8 @@ class Library:
                    int(height), float(k_sigma), float(eta), float(tau), _ptr(gl_nodes), _ptr(gl_weights),
                    gl_nodes.shape[0], _ptr(order), m, _ptr(tile_offsets), _ptr(isect_ids), p,
                    *map(_ptr, (pair_offsets, isect_pos, last, color, depth_img, alpha_img, grad_color, grad_depth,
-                               grad_alpha)), int(need_color_grad), int(need_opacity_grad), int(threads),
+                               grad_alpha)), None if grad_color_appearance is None else _ptr(grad_color_appearance),
+                   int(need_color_grad), int(need_opacity_grad), int(threads),
                    *map(_ptr, outs))
         return outs
 

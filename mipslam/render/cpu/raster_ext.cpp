@@ -328,6 +328,9 @@ struct GradInputs {
     const float* grad_color;  // [H, W, C]
     const float* grad_depth;  // [H, W]
     const float* grad_alpha;  // [H, W]
+    // [H, W, C] or null: a colour gradient that reaches the Gaussians' colours only (an appearance loss whose
+    // gradient must not move the geometry); the colours take grad_color + this
+    const float* grad_color_appearance;
     const float* color;       // forward outputs
     const float* depth;
     const float* alpha;
@@ -353,14 +356,14 @@ static void backward_tile(const Scene& sc, int tile, const GradInputs& gin, floa
     const int x0 = (tile % sc.tiles_x) * TILE, y0 = (tile / sc.tiles_x) * TILE;
     const Settings& S = sc.settings;
     const float k2 = S.k_sigma * S.k_sigma;
-    vf gcol[C][NV], gdep[NV], galp[NV], stot[NV], T[NV], prefix[NV];
+    vf gcol[C][NV], gcol_colors[C][NV], gdep[NV], galp[NV], stot[NV], T[NV], prefix[NV];
     vi last[NV];
     for (int r = 0; r < TILE; ++r) {
         for (int b = 0; b < BLOCKS_PER_ROW; ++b) {
             const int v = r * BLOCKS_PER_ROW + b;
             for (int i = 0; i < LANES; ++i) {
                 const int x = x0 + b * LANES + i, y = y0 + r;
-                float gd = 0.f, gal = 0.f, st = 0.f, gc[C] = {};
+                float gd = 0.f, gal = 0.f, st = 0.f, gc[C] = {}, gca[C] = {};
                 int32_t la = 0;
                 if (x < sc.width && y < sc.height) {
                     const int64_t p = (int64_t)y * sc.width + x;
@@ -371,16 +374,22 @@ static void backward_tile(const Scene& sc, int tile, const GradInputs& gin, floa
                         gc[c] = gin.grad_color[p * C + c];
                         st += gc[c] * gin.color[p * C + c];
                     }
+                    if (GC && gin.grad_color_appearance != nullptr)
+                        for (int c = 0; c < C; ++c) gca[c] = gin.grad_color_appearance[p * C + c];
                     la = gin.last[p];
                     // a pixel without incoming gradient (masked out of the loss) contributes nothing: skip it
                     bool any = gd != 0.f || gal != 0.f;
-                    for (int c = 0; c < C; ++c) any = any || gc[c] != 0.f;
+                    for (int c = 0; c < C; ++c) any = any || gc[c] != 0.f || gca[c] != 0.f;
                     if (!any) la = 0;
                 }
                 gdep[v][i] = gd;
                 galp[v][i] = gal;
                 stot[v][i] = st;
                 for (int c = 0; c < C; ++c) gcol[c][v][i] = gc[c];
+                // without an appearance gradient the colours take grad_color itself (the same bits)
+                if (GC)
+                    for (int c = 0; c < C; ++c)
+                        gcol_colors[c][v][i] = gin.grad_color_appearance != nullptr ? gc[c] + gca[c] : gc[c];
                 last[v][i] = la;
             }
             T[v] = splat(1.f);
@@ -423,7 +432,7 @@ static void backward_tile(const Scene& sc, int tile, const GradInputs& gin, floa
             const vf dal = t * s - (stot[v] - prefix[v]) / (splat(1.f) - al);
             T[v] = t - w;
             if (GC)
-                for (int c = 0; c < C; ++c) acc_c[c] += w * gcol[c][v];
+                for (int c = 0; c < C; ++c) acc_c[c] += w * gcol_colors[c][v];
             acc_d += w * gdep[v];
             return keep(valid & (a <= splat(ALPHA_MAX)), dal);
         };
@@ -829,7 +838,7 @@ int guarded(char* err, int64_t err_len, F&& body) {
 #endif
 
 // Bumped whenever a signature below changes (library.py refuses a library of another version).
-MIPSLAM_API int mipslam_abi_version(void) { return 5; }
+MIPSLAM_API int mipslam_abi_version(void) { return 6; }
 
 // Hash of the sources and flags the library was built from (mipslam/render/cpu/build.py, source_hash), also
 // readable from the file without loading it (the marker).
@@ -917,7 +926,8 @@ MIPSLAM_API int mipslam_rasterize_forward(void* state, double eta, double tau, c
 
 // Gradient of sum(grad_color * color + grad_depth * depth + grad_alpha * alpha) with respect to means2d
 // [N, 2], cov [N, 4], opacity [N], depth [N], colors [N, C] (g_* zero-filled by the caller), from the
-// inputs and the state of the forward.
+// inputs and the state of the forward. grad_color_appearance [H, W, C] or null: a second colour gradient
+// that only g_colors takes (as if the colour image it multiplies were rendered with the geometry held fixed).
 MIPSLAM_API int mipslam_rasterize_backward(
     const float* means2d, const float* cov, const float* opacity, const float* depth, const float* colors,
     const int32_t* node_counts, int64_t n, int64_t channels, int64_t mode, int64_t width, int64_t height,
@@ -925,7 +935,7 @@ MIPSLAM_API int mipslam_rasterize_backward(
     const int32_t* order, int64_t count, const int32_t* tile_offsets, const int32_t* isect_ids, int64_t pairs,
     const int32_t* pair_offsets, const int32_t* isect_pos, const int32_t* last, const float* color,
     const float* depth_img, const float* alpha_img, const float* grad_color, const float* grad_depth,
-    const float* grad_alpha, int64_t need_color_grad, int64_t need_opacity_grad, int64_t threads, float* g_means2d,
+    const float* grad_alpha, const float* grad_color_appearance, int64_t need_color_grad, int64_t need_opacity_grad, int64_t threads, float* g_means2d,
     float* g_cov, float* g_opacity, float* g_depth, float* g_colors, char* err, int64_t err_len) {
     using namespace mipslam_cpu;
     return guarded(err, err_len, [&] {
@@ -934,7 +944,8 @@ MIPSLAM_API int mipslam_rasterize_backward(
         MIPSLAM_CHECK(exact_order >= 1 && exact_order <= MAX_ROWS,
                       "mipslam cpu rasterizer: exact order must be in [1, ", MAX_ROWS, "]");
         const Settings settings = make_settings((int)mode, k_sigma, eta, tau, gl_nodes, gl_weights, exact_order);
-        const GradInputs gin{grad_color, grad_depth, grad_alpha, color, depth_img, alpha_img, last};
+        const GradInputs gin{grad_color, grad_depth, grad_alpha, grad_color_appearance, color, depth_img, alpha_img,
+                             last};
         rasterize_backward(in, (int)mode, (int)width, (int)height, settings, order, count, tile_offsets, isect_ids,
                            pairs, pair_offsets, isect_pos, gin, need_color_grad != 0, need_opacity_grad != 0,
                            (int)threads, g_means2d, g_cov, g_opacity, g_depth, g_colors);
