@@ -152,3 +152,15 @@ def test_the_frequency_loss_moves_the_geometry_by_default_and_on_real_cameras_on
     assert MappingConfig().freq_moves_geometry == "always"
     tum = Path(__file__).resolve().parents[1] / "configs" / "tum.yaml"
     assert load_config(tum, preset="balanced").mapping.freq_moves_geometry == "final"
+
+
+def test_the_torch_reference_gives_the_same_appearance_gradient_when_it_recomputes_its_batches():
+    grads = []
+    for checkpoint in (False, True):
+        inputs, K = _inputs(torch.float64)
+        out = rasterize(*inputs, K, W, H, mode="eaa", backend="torch", appearance_color=True, checkpoint=checkpoint)
+        ((out.color * _weights(out.color.shape, 1, torch.float64)).sum()
+         + (out.color_appearance * _weights(out.color.shape, 2, torch.float64)).sum()).backward()
+        grads.append([t.grad for t in inputs])
+    for a, b in zip(*grads):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14)
