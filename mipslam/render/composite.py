@@ -43,7 +43,12 @@ def composite(opacity: torch.Tensor, colors: torch.Tensor, depths: torch.Tensor)
     opacity [..., L] (per-pixel opacity a before clamping), colors [..., L, C], depths [..., L] metres
     -> (color [..., C], depth [...], alpha [...]).
     """
-    weights = blend_weights(clamp_alpha(opacity))
+    return composite_weighted(blend_weights(clamp_alpha(opacity)), colors, depths)
+
+
+def composite_weighted(weights: torch.Tensor, colors: torch.Tensor, depths: torch.Tensor):
+    """:func:`composite` from its blending weights ``w_i = alpha_i T_i`` [..., L] (:func:`blend_weights`), for a
+    caller that reuses them.  colors [..., L, C], depths [..., L] -> (color [..., C], depth [...], alpha [...])"""
     color = (weights.unsqueeze(-1) * colors).sum(-2)
     depth = (weights * depths).sum(-1)
     return color, depth, weights.sum(-1)

@@ -24,7 +24,7 @@ import torch
 from torch.utils.checkpoint import checkpoint as torch_checkpoint
 
 from mipslam.render import footprint
-from mipslam.render.composite import blend_weights, clamp_alpha, composite
+from mipslam.render.composite import blend_weights, clamp_alpha, composite_weighted
 from mipslam.render.projection import ProjectedGaussians
 
 
@@ -154,11 +154,11 @@ def _render_batch(settings: FootprintSettings, appearance: bool, pix_x, pix_y, m
     only)."""
     a = batch_pixel_opacity(settings, pix_x, pix_y, mean_x, mean_y, cov_xx, cov_xy, cov_yy, cov_det, opacity,
                             node_counts)  # [B, P, L]
-    color, depth_img, alpha = composite(a, colors.unsqueeze(1), depth)
+    weights = blend_weights(clamp_alpha(a))  # [B, P, L]
+    color, depth_img, alpha = composite_weighted(weights, colors.unsqueeze(1), depth)
     parts = [color, depth_img.unsqueeze(-1), alpha.unsqueeze(-1)]
     if appearance:
-        weights = blend_weights(clamp_alpha(a.detach()))  # [B, P, L], the values composite used
-        parts.append((weights.unsqueeze(-1) * colors.unsqueeze(1)).sum(-2))
+        parts.append((weights.detach().unsqueeze(-1) * colors.unsqueeze(1)).sum(-2))
     return torch.cat(parts, -1)
 
 

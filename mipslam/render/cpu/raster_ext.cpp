@@ -935,8 +935,9 @@ MIPSLAM_API int mipslam_rasterize_backward(
     const int32_t* order, int64_t count, const int32_t* tile_offsets, const int32_t* isect_ids, int64_t pairs,
     const int32_t* pair_offsets, const int32_t* isect_pos, const int32_t* last, const float* color,
     const float* depth_img, const float* alpha_img, const float* grad_color, const float* grad_depth,
-    const float* grad_alpha, const float* grad_color_appearance, int64_t need_color_grad, int64_t need_opacity_grad, int64_t threads, float* g_means2d,
-    float* g_cov, float* g_opacity, float* g_depth, float* g_colors, char* err, int64_t err_len) {
+    const float* grad_alpha, const float* grad_color_appearance, int64_t need_color_grad, int64_t need_opacity_grad,
+    int64_t threads, float* g_means2d, float* g_cov, float* g_opacity, float* g_depth, float* g_colors, char* err,
+    int64_t err_len) {
     using namespace mipslam_cpu;
     return guarded(err, err_len, [&] {
         const Inputs in{means2d, cov, opacity, depth, colors, node_counts, n, channels};
