@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import re
 import shlex
 from pathlib import Path
@@ -186,3 +187,16 @@ def test_loop_edges_reads_the_ground_truth_shifted_in_time(tmp_path):
     synthetic = SimpleNamespace(dataset=SimpleNamespace(kind="synthetic", path=str(tmp_path), association_tolerance_s=0.02))
     with pytest.raises(MipslamError, match="read as synthetic"):
         _shifted_ground_truth(synthetic, np.array([0.3]), 0.05)
+
+
+def test_loop_edges_splits_the_accepted_pairs_by_their_overlap():
+    from mipslam.bench.scenarios.loop_edges import _by_fitness
+
+    rows = _by_fitness((0.3, 0.5, 1.0), fitness=[0.35, 0.45, 0.5, 0.9, 1.0], errors_t=[4.0, 2.0, 1.0, 3.0, 5.0],
+                       errors_r=[1.0, 3.0, 0.5, 0.7, 0.9], claimed_t=[0.4, 0.4, 0.2, 0.2, 0.2])
+    # [0.3, 0.5) holds the first two; the last bin is closed, so 0.5 and 1.0 both fall into [0.5, 1.0]
+    assert [row["accepted"] for row in rows] == [2, 3]
+    assert rows[0]["error_t_cm_median"] == 3.0 and rows[0]["error_r_deg_median"] == 2.0
+    assert rows[1]["error_t_cm_median"] == 3.0 and rows[1]["claimed_t_cm_median"] == 0.2
+    empty = _by_fitness((0.3, 0.5), [0.9], [1.0], [1.0], [1.0])
+    assert empty[0]["accepted"] == 0 and math.isnan(empty[0]["error_t_cm_median"])

@@ -53,6 +53,9 @@ class Options:
     # seconds added to the ground truth's timestamps before it is interpolated at the frames' times (TUM layout):
     # an error that shrinks at some shift is the ground truth's timing, not the registration's
     gt_time_shift_s: float = 0.0
+    # the accepted pairs again by their overlap (the verification's fitness: the fraction of source points with a
+    # correspondence), in bins between these edges: how the error depends on how much of the view the pair shares
+    fitness_bins: tuple[float, ...] = (0.3, 0.5, 0.75, 1.0)
     config_overrides: tuple[str, ...] = ()  # config KEY=VALUE, e.g. dataset.path=...
 
 
@@ -75,6 +78,22 @@ def _stats(values: list[float]) -> tuple[float, float]:
     return (float(np.median(values)), float(np.percentile(values, 90))) if values else (math.nan, math.nan)
 
 
+def _by_fitness(edges: tuple[float, ...], fitness: list[float], errors_t: list[float], errors_r: list[float],
+                claimed_t: list[float]) -> list[dict]:
+    """Median errors (cm, deg) and claimed translation (cm) of the accepted pairs whose fitness lies in each bin
+    [edges[b], edges[b + 1]) (the last bin closed)."""
+    values = np.asarray(fitness, dtype=np.float64)
+    rows = []
+    for b, (low, high) in enumerate(zip(edges[:-1], edges[1:])):
+        inside = (values >= low) & ((values <= high) if b == len(edges) - 2 else (values < high))
+        pick = [n for n in range(len(values)) if inside[n]]
+        rows.append({"fitness": [low, high], "accepted": len(pick),
+                     "error_t_cm_median": _stats([errors_t[n] for n in pick])[0],
+                     "error_r_deg_median": _stats([errors_r[n] for n in pick])[0],
+                     "claimed_t_cm_median": _stats([claimed_t[n] for n in pick])[0]})
+    return rows
+
+
 def _shifted_ground_truth(config: Config, frame_times: np.ndarray, shift_s: float) -> tuple[torch.Tensor, np.ndarray]:
     """The TUM folder's groundtruth.txt with ``shift_s`` added to its stamps, at ``frame_times`` [N] (seconds).
     -> (T_wc [N, 4, 4] float64, valid [N] bool)"""
@@ -93,6 +112,8 @@ def _shifted_ground_truth(config: Config, frame_times: np.ndarray, shift_s: floa
 def run(options: Options, out_dir: Path) -> ScenarioResult:
     if not options.gaps or min(options.gaps) < 1 or options.first_every < 1:
         raise MipslamError("loop_edges.gaps must be positive frame counts and loop_edges.first_every >= 1")
+    if len(options.fitness_bins) < 2 or list(options.fitness_bins) != sorted(set(options.fitness_bins)):
+        raise MipslamError("loop_edges.fitness_bins must be at least two increasing fitness values, e.g. 0.3,0.5,0.75,1")
     overrides = list(options.config_overrides)
     if options.synth_frames > 0:
         overrides.insert(0, f"dataset.path={synth_sequence(out_dir, options.synth_size, options.synth_frames)}")
@@ -108,7 +129,7 @@ def run(options: Options, out_dir: Path) -> ScenarioResult:
     sigma = torch.tensor([options.perturb_m] * 3 + [math.radians(options.perturb_deg)] * 3, dtype=torch.float64)
     pairs = [(i, i + gap) for i in range(0, len(sequence), options.first_every) for gap in options.gaps
              if i + gap < len(sequence) and bool(gt_valid[i]) and bool(gt_valid[i + gap])]
-    errors_t, errors_r, claimed_t, claimed_r = [], [], [], []
+    errors_t, errors_r, claimed_t, claimed_r, fitness = [], [], [], [], []
     for i, j in pairs:
         frame_i, frame_j = sequence[i], sequence[j]
         T_gt = se3_inverse(gt_T_wc[i].to(torch.float64)) @ gt_T_wc[j].to(torch.float64)
@@ -120,6 +141,7 @@ def run(options: Options, out_dir: Path) -> ScenarioResult:
         t, r = _error(result.T_ij.to(torch.float64), T_gt)
         s_t, s_r = _claimed(result.information)
         errors_t.append(t), errors_r.append(r), claimed_t.append(s_t), claimed_r.append(s_r)
+        fitness.append(result.fitness)
     err_t, err_r, cl_t, cl_r = _stats(errors_t), _stats(errors_r), _stats(claimed_t), _stats(claimed_r)
     results = {"pairs": len(pairs), "accepted": len(errors_t),
                "error_t_cm_median": err_t[0], "error_t_cm_p90": err_t[1],
@@ -127,6 +149,7 @@ def run(options: Options, out_dir: Path) -> ScenarioResult:
                "claimed_t_cm_median": cl_t[0], "claimed_r_deg_median": cl_r[0],
                "ratio_t": err_t[0] / cl_t[0] if cl_t[0] > 0 else math.nan,
                "ratio_r": err_r[0] / cl_r[0] if cl_r[0] > 0 else math.nan}
+    results["by_fitness"] = _by_fitness(options.fitness_bins, fitness, errors_t, errors_r, claimed_t)
     log.info("loop edges: %s", results)
     report = "\n".join([
         f"**{config.dataset.path}**, `loop.registration={config.loop.registration}`, gaps {list(options.gaps)} frames, "
@@ -135,7 +158,11 @@ def run(options: Options, out_dir: Path) -> ScenarioResult:
         "claimed r [deg] | error / claimed (t, r) |",
         "|---|---:|---:|---:|---:|---:|",
         f"| {len(pairs)} ({len(errors_t)}) | {err_t[0]:.2f} / {err_t[1]:.2f} | {cl_t[0]:.3f} | "
-        f"{err_r[0]:.2f} / {err_r[1]:.2f} | {cl_r[0]:.3f} | {results['ratio_t']:.1f}, {results['ratio_r']:.1f} |"])
+        f"{err_r[0]:.2f} / {err_r[1]:.2f} | {cl_r[0]:.3f} | {results['ratio_t']:.1f}, {results['ratio_r']:.1f} |",
+        "", "By overlap (the verification's fitness):", "",
+        "| fitness | accepted | error t median [cm] | error r median [deg] | claimed t [cm] |", "|---|---:|---:|---:|---:|",
+        *(f"| {row['fitness'][0]:g}-{row['fitness'][1]:g} | {row['accepted']} | {row['error_t_cm_median']:.2f} | "
+          f"{row['error_r_deg_median']:.2f} | {row['claimed_t_cm_median']:.3f} |" for row in results["by_fitness"])])
     files = write_benchmark(out_dir, RECORD_NAME, parameters(options), results, threads=torch.get_num_threads(),
                             markdown=report)
     return ScenarioResult(files, report)
