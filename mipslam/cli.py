@@ -525,6 +525,17 @@ def _format_metrics(metrics: dict) -> str:
     if path and path.get("ratio") is not None:
         lines.append(f"path length {path['estimate'] * 100:.1f} cm against {path['ground_truth'] * 100:.1f} cm "
                      f"of ground truth (x{path['ratio']:.2f})")
+    loop_edges = metrics.get("loop_edges")
+    if loop_edges:
+        def cm_deg(values: dict, prefix: str = "") -> str:
+            t, r = values[f"{prefix}error_t_cm_median"], values[f"{prefix}error_r_deg_median"]
+            return "-" if t is None else f"{t:.2f} cm / {r:.2f} deg"
+
+        lines.append(f"loop edges against ground truth (median): {loop_edges['edges']} verified, "
+                     f"{cm_deg(loop_edges)}; the {loop_edges['used']} used {cm_deg(loop_edges, 'used_')}; "
+                     f"the estimate between the same frames {cm_deg(loop_edges, 'estimate_')}")
+        lines.append("  by fitness: " + ", ".join(
+            f"{row['fitness'][0]:g}-{row['fitness'][1]:g}: {row['edges']} at {cm_deg(row)}" for row in loop_edges["by_fitness"]))
     render = metrics.get("render")
     if render:
         if "unavailable" in render:

@@ -129,6 +129,14 @@ def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, associati
                               "note": "flagged frames keep their motion-model pose and are included in the ATE"},
         "trajectory": trajectory,
     }
+    if folder.loops.is_file():
+        from mipslam.evaluation.loop_edges import loop_edge_accuracy
+
+        loops = read_run_json(folder.loops)
+        timestamps = {int(f["index"]): float(f["timestamp"]) for f in frames["frames"]}
+        accuracy = loop_edge_accuracy(loops.get("candidates", []), timestamps, gt, est)
+        if accuracy is not None:
+            metrics["loop_edges"] = accuracy
     evaluation = None
     if render:
         from mipslam.evaluation.render_eval import RenderEvalOptions, evaluate_render

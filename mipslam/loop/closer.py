@@ -165,6 +165,9 @@ class CandidateReport:
     accepted: bool
     reason: str
     time_s: float
+    # the relative pose T_i^-1 T_k the registration measured (row-major 4x4) where it passed verification's checks,
+    # else None: what `mipslam eval` compares with the ground truth (mipslam.evaluation.loop_edges)
+    measured_T_ij: list[float] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -401,7 +404,8 @@ class LoopCloser:
                 candidate.view_angle_deg, result.fitness, _finite_or_none(result.inlier_rmse_m),
                 result.num_correspondences, _finite_or_none(result.correction_m),
                 _finite_or_none(result.correction_deg), result.accepted,
-                "verified: loop edge added" if result.accepted else result.reason, result.time_s))
+                "verified: loop edge added" if result.accepted else result.reason, result.time_s,
+                result.T_ij.detach().to(torch.float64).cpu().reshape(-1).tolist() if result.accepted else None))
             if result.accepted:
                 information = loop_information(result.information, self.config.loop_sigma_m, self.config.loop_sigma_deg)
                 verified.append(VerifiedEdge(len(reports) - 1, i, result.T_ij.to(torch.float64).cpu(), information))

@@ -1,0 +1,100 @@
+"""How accurate a run's loop edges were: each verified registration of ``loops.json`` against the ground truth.
+
+A loop candidate (keyframe i, query keyframe k) whose registration passed verification records the relative pose
+it measured, ``Z = T_i^-1 T_k`` (``measured_T_ij``). Its error is ``E = inv(Z_gt) Z`` with ``Z_gt`` from the ground
+truth of the two frames: the translation (cm) and rotation angle (deg) of E. The same for the run's final estimate
+of the two frames (``traj_est.txt``), the odometry and loop corrections together, as the yardstick: an edge can
+only improve the estimate where it errs less than that. Both are relative poses, so no alignment is involved.
+
+Summaries are medians over the edges, all of them and by overlap (the verification's fitness, the fraction of the
+query's points that found a correspondence), in the bins :data:`FITNESS_BINS`.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from mipslam.io.tum import Trajectory
+
+FITNESS_BINS = (0.0, 0.5, 0.75, 1.0)
+
+
+def _relative_error(Z_measured: np.ndarray, Z_true: np.ndarray) -> tuple[float, float]:
+    """Translation (cm) and rotation (deg) of ``inv(Z_true) Z_measured``, both [4, 4]."""
+    E = np.linalg.solve(Z_true, Z_measured)
+    cos = float(np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))
+    return float(np.linalg.norm(E[:3, 3])) * 100.0, math.degrees(math.acos(cos))
+
+
+def _median(values: list[float]) -> float | None:
+    return float(np.median(values)) if values else None
+
+
+# the trajectory files carry timestamps to the microsecond; frames.json to full precision
+TIMESTAMP_TOLERANCE_S = 1e-5
+
+
+def _pose_at(trajectory: Trajectory, timestamp: float) -> np.ndarray | None:
+    """The pose [4, 4] of ``trajectory`` stamped ``timestamp`` (within :data:`TIMESTAMP_TOLERANCE_S`), else None."""
+    times = trajectory.timestamps
+    n = int(np.searchsorted(times, timestamp))
+    for m in (n - 1, n):
+        if 0 <= m < len(times) and abs(times[m] - timestamp) <= TIMESTAMP_TOLERANCE_S:
+            return trajectory.T_wc[m]
+    return None
+
+
+def loop_edge_accuracy(candidates: list[dict[str, Any]], frame_timestamps: dict[int, float], ground_truth: Trajectory,
+                       estimate: Trajectory) -> dict[str, Any] | None:
+    """Errors of the verified loop edges against the ground truth.
+
+    candidates: ``loops.json``'s candidate rows; frame_timestamps: sequence frame index -> timestamp of the run's
+    frames (``frames.json``); ground_truth / estimate: ``traj_gt.txt`` / ``traj_est.txt``. Returns None when no
+    row carries a measurement (loops off, none verified, or a run folder written before the measurements were
+    recorded).
+
+    -> {"edges": count, "used": count that became loop edges (``accepted``), "error_t_cm_median",
+    "error_r_deg_median", "estimate_error_t_cm_median", "estimate_error_r_deg_median", the same for the used
+    edges ("used_*"), "by_fitness": per bin of :data:`FITNESS_BINS` its count and medians, "per_edge": rows}
+    """
+    rows = []
+    for c in candidates:
+        measured = c.get("measured_T_ij")
+        if measured is None:
+            continue
+        t_query, t_candidate = frame_timestamps.get(c["query_frame"]), frame_timestamps.get(c["candidate_frame"])
+        if t_query is None or t_candidate is None:
+            continue
+        gt_query, gt_candidate = _pose_at(ground_truth, t_query), _pose_at(ground_truth, t_candidate)
+        if gt_query is None or gt_candidate is None:
+            continue  # a frame without ground truth
+        Z_true = np.linalg.solve(gt_candidate, gt_query)
+        error_t, error_r = _relative_error(np.asarray(measured, dtype=np.float64).reshape(4, 4), Z_true)
+        row = {"query_frame": c["query_frame"], "candidate_frame": c["candidate_frame"],
+               "fitness": float(c["fitness"]), "used": bool(c["accepted"]), "error_t_cm": error_t, "error_r_deg": error_r}
+        est_query, est_candidate = _pose_at(estimate, t_query), _pose_at(estimate, t_candidate)
+        if est_query is not None and est_candidate is not None:
+            Z_est = np.linalg.solve(est_candidate, est_query)
+            row["estimate_error_t_cm"], row["estimate_error_r_deg"] = _relative_error(Z_est, Z_true)
+        rows.append(row)
+    if not rows:
+        return None
+
+    def medians(selected: list[dict], prefix: str = "") -> dict[str, float | None]:
+        return {f"{prefix}error_t_cm_median": _median([r["error_t_cm"] for r in selected]),
+                f"{prefix}error_r_deg_median": _median([r["error_r_deg"] for r in selected]),
+                f"{prefix}estimate_error_t_cm_median": _median([r["estimate_error_t_cm"] for r in selected
+                                                                  if "estimate_error_t_cm" in r]),
+                f"{prefix}estimate_error_r_deg_median": _median([r["estimate_error_r_deg"] for r in selected
+                                                                   if "estimate_error_r_deg" in r])}
+
+    by_fitness = []
+    for b, (low, high) in enumerate(zip(FITNESS_BINS[:-1], FITNESS_BINS[1:])):
+        last = b == len(FITNESS_BINS) - 2
+        inside = [r for r in rows if low <= r["fitness"] and (r["fitness"] <= high if last else r["fitness"] < high)]
+        by_fitness.append({"fitness": [low, high], "edges": len(inside), **medians(inside)})
+    used = [r for r in rows if r["used"]]
+    return {"edges": len(rows), "used": len(used), **medians(rows), **medians(used, "used_"),
+            "by_fitness": by_fitness, "per_edge": rows}
