@@ -93,8 +93,9 @@ def loop_summary(state: SLAMState, config: Config) -> dict:
                      "a loop edge of the final pose graph",
             "candidates": "query/candidate keyframe and frame, descriptor similarity, distance and view angle in the "
                           "current estimate, verification fitness and inlier RMSE (m), how far registration moved the "
-                          "initial guess, accepted (became a loop edge) or the reason for the rejection, the relative "
-                          "pose T_i^-1 T_k it measured (row-major 4x4) where the registration passed its checks",
+                          "initial guess, accepted (became a loop edge) or the reason for the rejection, where the "
+                          "registration passed its checks the relative pose T_i^-1 T_k it measured and the one the "
+                          "estimate held then (row-major 4x4)",
             "optimisations": "per keyframe that added loop edges disagreeing with the current poses (edges within "
                              "loop.consistent_chi2 or loop.min_correction_m/_deg join the graph without one): graph "
                              "size, cost before/after (robust, on the edges kept), LM iterations, pruned loop edges [i, j], final weight and chi2 of its new and pruned "

@@ -19,9 +19,11 @@ def pose(x: float, yaw_deg: float = 0.0) -> np.ndarray:
     return T
 
 
-def candidate(query: int, old: int, measured: np.ndarray | None, fitness: float, accepted: bool) -> dict:
+def candidate(query: int, old: int, measured: np.ndarray | None, fitness: float, accepted: bool,
+              estimate: np.ndarray | None = None) -> dict:
     return {"query_frame": query, "candidate_frame": old, "fitness": fitness, "accepted": accepted,
-            "measured_T_ij": None if measured is None else measured.reshape(-1).tolist()}
+            "measured_T_ij": None if measured is None else measured.reshape(-1).tolist(),
+            "estimate_T_ij": None if estimate is None else estimate.reshape(-1).tolist()}
 
 
 def test_each_verified_edge_is_compared_with_the_relative_ground_truth_pose():
@@ -32,8 +34,10 @@ def test_each_verified_edge_is_compared_with_the_relative_ground_truth_pose():
     Z_true = np.linalg.solve(truth.T_wc[0], truth.T_wc[3])  # T_0^-1 T_3
     off_by_2cm = Z_true.copy()
     off_by_2cm[1, 3] += 0.02  # 2 cm in the old camera's y
+    estimate_then = Z_true.copy()
+    estimate_then[2, 3] += 0.03  # when it was verified the estimate was 3 cm off in the old camera's z
     candidates = [
-        candidate(3, 0, off_by_2cm, fitness=0.9, accepted=True),
+        candidate(3, 0, off_by_2cm, fitness=0.9, accepted=True, estimate=estimate_then),
         candidate(3, 1, np.linalg.solve(truth.T_wc[1], truth.T_wc[3]) @ pose(0.0, 1.0), fitness=0.4, accepted=False),
         candidate(2, 0, None, fitness=0.2, accepted=False),  # rejected by verification: nothing measured
     ]
@@ -43,8 +47,10 @@ def test_each_verified_edge_is_compared_with_the_relative_ground_truth_pose():
     first, second = result["per_edge"]
     assert first["error_t_cm"] == pytest.approx(2.0) and first["error_r_deg"] == pytest.approx(0.0, abs=1e-6)
     assert second["error_t_cm"] == pytest.approx(0.0, abs=1e-9) and second["error_r_deg"] == pytest.approx(1.0)
-    # the estimate's relative pose between frames 0 and 3 is 1 cm off (along the old camera's x)
-    assert first["estimate_error_t_cm"] == pytest.approx(1.0)
+    assert first["estimate_then_error_t_cm"] == pytest.approx(3.0) and "estimate_then_error_t_cm" not in second
+    # the final estimate's relative pose between frames 0 and 3 is 1 cm off (along the old camera's x)
+    assert first["final_estimate_error_t_cm"] == pytest.approx(1.0)
+    assert result["used_estimate_then_error_t_cm_median"] == pytest.approx(3.0)
     assert result["used_error_t_cm_median"] == pytest.approx(2.0)
     assert result["error_t_cm_median"] == pytest.approx(1.0)  # median of 2.0 and 0.0
     bins = {tuple(row["fitness"]): row["edges"] for row in result["by_fitness"]}

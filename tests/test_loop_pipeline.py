@@ -141,7 +141,7 @@ def test_sa_pgo_halves_the_drift_of_a_biased_odometer(drift_runs):
         assert optimisation["iterations"] >= 1 and optimisation["time_s"] > 0
     assert any(entry["accepted"] for entry in report["loops"])
     # every verified registration records the relative pose it measured; `mipslam eval` compares it with the truth
-    assert all(len(c["measured_T_ij"]) == 16 for c in report["candidates"] if c["accepted"])
+    assert all(len(c["measured_T_ij"]) == 16 == len(c["estimate_T_ij"]) for c in report["candidates"] if c["accepted"])
     from mipslam.evaluation.run_eval import evaluate_run
 
     edges = evaluate_run(drift_runs["on"], render=False, report=False)["loop_edges"]
@@ -149,6 +149,8 @@ def test_sa_pgo_halves_the_drift_of_a_biased_odometer(drift_runs):
     assert edges["used"] == sum(bool(c["accepted"]) for c in report["candidates"])
     # at 40x30 pixels and a 5 cm voxel the edges err by centimetres, still less than the biased odometer drifted
     assert edges["error_t_cm_median"] < 100 * ate_off and edges["error_r_deg_median"] < 2.0, edges
+    # ... and less than the drifted estimate they corrected
+    assert edges["used_error_t_cm_median"] < edges["used_estimate_then_error_t_cm_median"], edges
     assert sum(row["edges"] for row in edges["by_fitness"]) == edges["edges"]
     # SA-PGO as configured by default: both spectral switches on.
     assert all(o["spectral_edge_weighting"] and o["low_frequency_correction"] for o in report["optimisations"])

@@ -1,10 +1,11 @@
 """How accurate a run's loop edges were: each verified registration of ``loops.json`` against the ground truth.
 
 A loop candidate (keyframe i, query keyframe k) whose registration passed verification records the relative pose
-it measured, ``Z = T_i^-1 T_k`` (``measured_T_ij``). Its error is ``E = inv(Z_gt) Z`` with ``Z_gt`` from the ground
-truth of the two frames: the translation (cm) and rotation angle (deg) of E. The same for the run's final estimate
-of the two frames (``traj_est.txt``), the odometry and loop corrections together, as the yardstick: an edge can
-only improve the estimate where it errs less than that. Both are relative poses, so no alignment is involved.
+it measured, ``Z = T_i^-1 T_k`` (``measured_T_ij``), and the one the estimate held then (``estimate_T_ij``). The
+error of each is ``E = inv(Z_gt) Z`` with ``Z_gt`` from the ground truth of the two frames: the translation (cm)
+and rotation angle (deg) of E. The estimate at verification is the yardstick: a loop edge can only improve the
+estimate it corrects where it errs less than that. The run's final estimate of the two frames (``traj_est.txt``,
+after every correction) is given as well. All are relative poses, so no alignment is involved.
 
 Summaries are medians over the edges, all of them and by overlap (the verification's fitness, the fraction of the
 query's points that found a correspondence), in the bins :data:`FITNESS_BINS`.
@@ -56,8 +57,9 @@ def loop_edge_accuracy(candidates: list[dict[str, Any]], frame_timestamps: dict[
     recorded).
 
     -> {"edges": count, "used": count that became loop edges (``accepted``), "error_t_cm_median",
-    "error_r_deg_median", "estimate_error_t_cm_median", "estimate_error_r_deg_median", the same for the used
-    edges ("used_*"), "by_fitness": per bin of :data:`FITNESS_BINS` its count and medians, "per_edge": rows}
+    "error_r_deg_median" (the edges), "estimate_then_error_*_median" (the estimate when each was verified),
+    "final_estimate_error_*_median" (the final estimate), the same for the used edges ("used_*"), "by_fitness":
+    per bin of :data:`FITNESS_BINS` its count and medians, "per_edge": rows}
     """
     rows = []
     for c in candidates:
@@ -74,21 +76,21 @@ def loop_edge_accuracy(candidates: list[dict[str, Any]], frame_timestamps: dict[
         error_t, error_r = _relative_error(np.asarray(measured, dtype=np.float64).reshape(4, 4), Z_true)
         row = {"query_frame": c["query_frame"], "candidate_frame": c["candidate_frame"],
                "fitness": float(c["fitness"]), "used": bool(c["accepted"]), "error_t_cm": error_t, "error_r_deg": error_r}
+        if c.get("estimate_T_ij") is not None:
+            Z_then = np.asarray(c["estimate_T_ij"], dtype=np.float64).reshape(4, 4)
+            row["estimate_then_error_t_cm"], row["estimate_then_error_r_deg"] = _relative_error(Z_then, Z_true)
         est_query, est_candidate = _pose_at(estimate, t_query), _pose_at(estimate, t_candidate)
         if est_query is not None and est_candidate is not None:
-            Z_est = np.linalg.solve(est_candidate, est_query)
-            row["estimate_error_t_cm"], row["estimate_error_r_deg"] = _relative_error(Z_est, Z_true)
+            Z_final = np.linalg.solve(est_candidate, est_query)
+            row["final_estimate_error_t_cm"], row["final_estimate_error_r_deg"] = _relative_error(Z_final, Z_true)
         rows.append(row)
     if not rows:
         return None
 
     def medians(selected: list[dict], prefix: str = "") -> dict[str, float | None]:
-        return {f"{prefix}error_t_cm_median": _median([r["error_t_cm"] for r in selected]),
-                f"{prefix}error_r_deg_median": _median([r["error_r_deg"] for r in selected]),
-                f"{prefix}estimate_error_t_cm_median": _median([r["estimate_error_t_cm"] for r in selected
-                                                                  if "estimate_error_t_cm" in r]),
-                f"{prefix}estimate_error_r_deg_median": _median([r["estimate_error_r_deg"] for r in selected
-                                                                   if "estimate_error_r_deg" in r])}
+        return {f"{prefix}{what}_median": _median([r[what] for r in selected if what in r])
+                for what in ("error_t_cm", "error_r_deg", "estimate_then_error_t_cm", "estimate_then_error_r_deg",
+                             "final_estimate_error_t_cm", "final_estimate_error_r_deg")}
 
     by_fitness = []
     for b, (low, high) in enumerate(zip(FITNESS_BINS[:-1], FITNESS_BINS[1:])):

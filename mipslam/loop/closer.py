@@ -165,9 +165,11 @@ class CandidateReport:
     accepted: bool
     reason: str
     time_s: float
-    # the relative pose T_i^-1 T_k the registration measured (row-major 4x4) where it passed verification's checks,
-    # else None: what `mipslam eval` compares with the ground truth (mipslam.evaluation.loop_edges)
+    # where the registration passed verification's checks, the relative pose T_i^-1 T_k it measured and the one the
+    # estimate held when it was verified (its start), row-major 4x4, else None: what `mipslam eval` compares with
+    # the ground truth (mipslam.evaluation.loop_edges)
     measured_T_ij: list[float] | None = None
+    estimate_T_ij: list[float] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -405,7 +407,8 @@ class LoopCloser:
                 result.num_correspondences, _finite_or_none(result.correction_m),
                 _finite_or_none(result.correction_deg), result.accepted,
                 "verified: loop edge added" if result.accepted else result.reason, result.time_s,
-                result.T_ij.detach().to(torch.float64).cpu().reshape(-1).tolist() if result.accepted else None))
+                result.T_ij.detach().to(torch.float64).cpu().reshape(-1).tolist() if result.accepted else None,
+                T_ij_init.reshape(-1).tolist() if result.accepted else None))
             if result.accepted:
                 information = loop_information(result.information, self.config.loop_sigma_m, self.config.loop_sigma_deg)
                 verified.append(VerifiedEdge(len(reports) - 1, i, result.T_ij.to(torch.float64).cpu(), information))
