@@ -527,20 +527,10 @@ def _format_metrics(metrics: dict) -> str:
                      f"of ground truth (x{path['ratio']:.2f})")
     loop_edges = metrics.get("loop_edges")
     if loop_edges:
-        def cm_deg(values: dict, prefix: str = "") -> str:
-            t, r = values[f"{prefix}error_t_cm_median"], values[f"{prefix}error_r_deg_median"]
-            return "-" if t is None else f"{t:.2f} cm / {r:.2f} deg"
+        from mipslam.evaluation.loop_edges import summary_lines
 
-        def then(values: dict, prefix: str = "") -> str:
-            t, r = values[f"{prefix}estimate_then_error_t_cm_median"], values[f"{prefix}estimate_then_error_r_deg_median"]
-            return "-" if t is None else f"{t:.2f} cm / {r:.2f} deg"
-
-        lines.append(f"loop edges against ground truth (medians): {loop_edges['edges']} verified, "
-                     f"{cm_deg(loop_edges)} (the estimate they corrected {then(loop_edges)}); the {loop_edges['used']} "
-                     f"used {cm_deg(loop_edges, 'used_')} ({then(loop_edges, 'used_')})")
-        lines.append("  by fitness: " + ", ".join(
-            f"{row['fitness'][0]:g}-{row['fitness'][1]:g}: {row['edges']} at {cm_deg(row)} ({then(row)})"
-            for row in loop_edges["by_fitness"]))
+        first, by_fitness = summary_lines(loop_edges)
+        lines.extend([f"loop edges against ground truth (medians): {first}", f"  {by_fitness}"])
     render = metrics.get("render")
     if render:
         if "unavailable" in render:

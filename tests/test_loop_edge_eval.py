@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from mipslam.evaluation.loop_edges import loop_edge_accuracy
+from mipslam.evaluation.loop_edges import loop_edge_accuracy, summary_lines
 from mipslam.io.tum import Trajectory
 
 
@@ -55,6 +55,10 @@ def test_each_verified_edge_is_compared_with_the_relative_ground_truth_pose():
     assert result["error_t_cm_median"] == pytest.approx(1.0)  # median of 2.0 and 0.0
     bins = {tuple(row["fitness"]): row["edges"] for row in result["by_fitness"]}
     assert bins == {(0.0, 0.5): 1, (0.5, 0.75): 0, (0.75, 1.0): 1}
+    # what `mipslam eval` prints and the report shows: the used edge beside the estimate it corrected
+    first, by_fitness = summary_lines(result)
+    assert first.startswith("2 verified edges err 1.00 cm / 0.50 deg") and "the 1 used 2.00 cm / 0.00 deg (3.00 cm" in first
+    assert "0.5-0.75: 0 at - (-)" in by_fitness and "0.75-1: 1 at 2.00 cm / 0.00 deg (3.00 cm / 0.00 deg)" in by_fitness
 
 
 def test_frames_without_ground_truth_and_runs_without_measurements_are_left_out():

@@ -100,3 +100,21 @@ def loop_edge_accuracy(candidates: list[dict[str, Any]], frame_timestamps: dict[
     used = [r for r in rows if r["used"]]
     return {"edges": len(rows), "used": len(used), **medians(rows), **medians(used, "used_"),
             "by_fitness": by_fitness, "per_edge": rows}
+
+
+def _pair_text(values: dict[str, Any], prefix: str) -> str:
+    t, r = values.get(f"{prefix}_t_cm_median"), values.get(f"{prefix}_r_deg_median")
+    return "-" if t is None or r is None else f"{t:.2f} cm / {r:.2f} deg"
+
+
+def summary_lines(accuracy: dict[str, Any]) -> list[str]:
+    """Two lines of text for ``metrics.json``'s ``loop_edges`` (:func:`loop_edge_accuracy`): the medians of all and
+    of the used edges, each beside the estimate they corrected, then the same by fitness."""
+    return [
+        f"{accuracy['edges']} verified edges err {_pair_text(accuracy, 'error')} (the estimate they corrected "
+        f"{_pair_text(accuracy, 'estimate_then_error')}); the {accuracy['used']} used "
+        f"{_pair_text(accuracy, 'used_error')} ({_pair_text(accuracy, 'used_estimate_then_error')})",
+        "by fitness: " + ", ".join(
+            f"{row['fitness'][0]:g}-{row['fitness'][1]:g}: {row['edges']} at {_pair_text(row, 'error')} "
+            f"({_pair_text(row, 'estimate_then_error')})" for row in accuracy["by_fitness"]),
+    ]

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from mipslam.errors import EvaluationError
+from mipslam.evaluation.loop_edges import summary_lines
 from mipslam.io.run_folder import RunFolder, write_bytes_atomic, write_text_atomic
 from mipslam.io.tum import read_tum_trajectory
 
@@ -570,6 +571,8 @@ def _main_html(metrics: dict, timings: dict | None, loops_data: Any, images: dic
         ("keyframes / Gaussians", f"{metrics.get('keyframes')} / {metrics.get('gaussians')}"),
         ("tracking failures", str(metrics.get("tracking_failures", {}).get("count", 0))),
         ("loop closures", loop_text(loops_data)),
+        *([("loop edges against ground truth (medians)", " ".join(summary_lines(metrics["loop_edges"])))]
+          if metrics.get("loop_edges") else []),
         ("speed", f"{fps:.2f} frames/s ({timings.get('total_s', 0):.0f} s in total)" if fps else "-"),
     ]
     render = metrics.get("render") if isinstance(metrics.get("render"), dict) else None
