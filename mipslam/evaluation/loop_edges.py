@@ -12,39 +12,46 @@ query's points that found a correspondence), in the bins :data:`FITNESS_BINS`.
 """
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
 
+from mipslam.evaluation.trajectory import pose_errors, poses_at_stamps
 from mipslam.io.tum import Trajectory
 
 FITNESS_BINS = (0.0, 0.5, 0.75, 1.0)
 
+# the trajectory files carry timestamps to the microsecond; frames.json to full precision
+TIMESTAMP_TOLERANCE_S = 1e-5
 
-def _relative_error(Z_measured: np.ndarray, Z_true: np.ndarray) -> tuple[float, float]:
-    """Translation (cm) and rotation (deg) of ``inv(Z_true) Z_measured``, both [4, 4]."""
-    E = np.linalg.solve(Z_true, Z_measured)
-    cos = float(np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))
-    return float(np.linalg.norm(E[:3, 3])) * 100.0, math.degrees(math.acos(cos))
+_MEDIANS = ("error_t_cm", "error_r_deg", "estimate_then_error_t_cm", "estimate_then_error_r_deg",
+            "final_estimate_error_t_cm", "final_estimate_error_r_deg")
+
+
+def fitness_bins(fitness: list[float], edges: tuple[float, ...]) -> list[list[int]]:
+    """Indices of ``fitness`` in each bin ``[edges[b], edges[b + 1])``, the last bin closed; values outside
+    every bin are in none."""
+    last = len(edges) - 2
+    return [[n for n, f in enumerate(fitness) if low <= f and (f <= high if b == last else f < high)]
+            for b, (low, high) in enumerate(zip(edges[:-1], edges[1:]))]
 
 
 def _median(values: list[float]) -> float | None:
     return float(np.median(values)) if values else None
 
 
-# the trajectory files carry timestamps to the microsecond; frames.json to full precision
-TIMESTAMP_TOLERANCE_S = 1e-5
+def _error_cm_deg(Z_true: np.ndarray, Z: list[float] | np.ndarray) -> tuple[float, float]:
+    """:func:`pose_errors` of one relative pose ``Z`` (4x4, or 16 numbers row-major) against ``Z_true`` [4, 4]:
+    translation in centimetres, rotation in degrees."""
+    t, r = pose_errors(Z_true[None], np.asarray(Z, dtype=np.float64).reshape(1, 4, 4))
+    return float(t[0]) * 100.0, float(r[0])
 
 
-def _pose_at(trajectory: Trajectory, timestamp: float) -> np.ndarray | None:
-    """The pose [4, 4] of ``trajectory`` stamped ``timestamp`` (within :data:`TIMESTAMP_TOLERANCE_S`), else None."""
-    times = trajectory.timestamps
-    n = int(np.searchsorted(times, timestamp))
-    for m in (n - 1, n):
-        if 0 <= m < len(times) and abs(times[m] - timestamp) <= TIMESTAMP_TOLERANCE_S:
-            return trajectory.T_wc[m]
-    return None
+def _relative_pose(trajectory: Trajectory, t_candidate: float, t_query: float) -> np.ndarray | None:
+    """``T_i^-1 T_k`` [4, 4] of ``trajectory`` between the frames stamped ``t_candidate`` (i) and ``t_query`` (k),
+    or None where either has no pose."""
+    found, T_wc = poses_at_stamps(trajectory, np.array([t_candidate, t_query]), TIMESTAMP_TOLERANCE_S)
+    return np.linalg.solve(T_wc[0], T_wc[1]) if found.all() else None
 
 
 def loop_edge_accuracy(candidates: list[dict[str, Any]], frame_timestamps: dict[int, float], ground_truth: Trajectory,
@@ -63,40 +70,31 @@ def loop_edge_accuracy(candidates: list[dict[str, Any]], frame_timestamps: dict[
     """
     rows = []
     for c in candidates:
-        measured = c.get("measured_T_ij")
-        if measured is None:
+        if c.get("measured_T_ij") is None or c["query_frame"] not in frame_timestamps \
+                or c["candidate_frame"] not in frame_timestamps:
             continue
-        t_query, t_candidate = frame_timestamps.get(c["query_frame"]), frame_timestamps.get(c["candidate_frame"])
-        if t_query is None or t_candidate is None:
-            continue
-        gt_query, gt_candidate = _pose_at(ground_truth, t_query), _pose_at(ground_truth, t_candidate)
-        if gt_query is None or gt_candidate is None:
+        stamps = frame_timestamps[c["candidate_frame"]], frame_timestamps[c["query_frame"]]
+        Z_true = _relative_pose(ground_truth, *stamps)
+        if Z_true is None:
             continue  # a frame without ground truth
-        Z_true = np.linalg.solve(gt_candidate, gt_query)
-        error_t, error_r = _relative_error(np.asarray(measured, dtype=np.float64).reshape(4, 4), Z_true)
-        row = {"query_frame": c["query_frame"], "candidate_frame": c["candidate_frame"],
-               "fitness": float(c["fitness"]), "used": bool(c["accepted"]), "error_t_cm": error_t, "error_r_deg": error_r}
+        row = {"query_frame": c["query_frame"], "candidate_frame": c["candidate_frame"], "fitness": float(c["fitness"]),
+               "used": bool(c["accepted"])}
+        row["error_t_cm"], row["error_r_deg"] = _error_cm_deg(Z_true, c["measured_T_ij"])
         if c.get("estimate_T_ij") is not None:
-            Z_then = np.asarray(c["estimate_T_ij"], dtype=np.float64).reshape(4, 4)
-            row["estimate_then_error_t_cm"], row["estimate_then_error_r_deg"] = _relative_error(Z_then, Z_true)
-        est_query, est_candidate = _pose_at(estimate, t_query), _pose_at(estimate, t_candidate)
-        if est_query is not None and est_candidate is not None:
-            Z_final = np.linalg.solve(est_candidate, est_query)
-            row["final_estimate_error_t_cm"], row["final_estimate_error_r_deg"] = _relative_error(Z_final, Z_true)
+            row["estimate_then_error_t_cm"], row["estimate_then_error_r_deg"] = _error_cm_deg(Z_true, c["estimate_T_ij"])
+        Z_final = _relative_pose(estimate, *stamps)
+        if Z_final is not None:
+            row["final_estimate_error_t_cm"], row["final_estimate_error_r_deg"] = _error_cm_deg(Z_true, Z_final)
         rows.append(row)
     if not rows:
         return None
 
     def medians(selected: list[dict], prefix: str = "") -> dict[str, float | None]:
-        return {f"{prefix}{what}_median": _median([r[what] for r in selected if what in r])
-                for what in ("error_t_cm", "error_r_deg", "estimate_then_error_t_cm", "estimate_then_error_r_deg",
-                             "final_estimate_error_t_cm", "final_estimate_error_r_deg")}
+        return {f"{prefix}{what}_median": _median([r[what] for r in selected if what in r]) for what in _MEDIANS}
 
-    by_fitness = []
-    for b, (low, high) in enumerate(zip(FITNESS_BINS[:-1], FITNESS_BINS[1:])):
-        last = b == len(FITNESS_BINS) - 2
-        inside = [r for r in rows if low <= r["fitness"] and (r["fitness"] <= high if last else r["fitness"] < high)]
-        by_fitness.append({"fitness": [low, high], "edges": len(inside), **medians(inside)})
+    by_fitness = [{"fitness": [low, high], "edges": len(members), **medians([rows[n] for n in members])}
+                  for (low, high), members in zip(zip(FITNESS_BINS[:-1], FITNESS_BINS[1:]),
+                                                  fitness_bins([r["fitness"] for r in rows], FITNESS_BINS))]
     used = [r for r in rows if r["used"]]
     return {"edges": len(rows), "used": len(used), **medians(rows), **medians(used, "used_"),
             "by_fitness": by_fitness, "per_edge": rows}

@@ -266,10 +266,28 @@ def relative_pose_errors(gt_T_wc: np.ndarray, est_T_wc: np.ndarray, delta: int) 
     first, second = rpe_pairs(gt_T_wc.shape[0], delta)
     gt_relative = _inverse_times(gt_T_wc[first], gt_T_wc[second])  # [K, 4, 4]
     est_relative = _inverse_times(est_T_wc[first], est_T_wc[second])  # [K, 4, 4]
-    error = _inverse_times(gt_relative, est_relative)  # [K, 4, 4]
+    return pose_errors(gt_relative, est_relative)
+
+
+def pose_errors(T_true: np.ndarray, T_est: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Translation (metres) and rotation angle (degrees) of ``E = T_true^-1 T_est`` per pair of rigid transforms.
+    T_true [K, 4, 4], T_est [K, 4, 4] -> ([K], [K])"""
+    error = _inverse_times(T_true, T_est)  # [K, 4, 4]
     translation_errors = np.linalg.norm(error[:, :3, 3], axis=1)
     angles_rad = rotation_angle(torch.tensor(error[:, :3, :3])).numpy()
     return translation_errors, np.degrees(angles_rad)
+
+
+def poses_at_stamps(trajectory: Trajectory, stamps: np.ndarray, max_diff: float) -> tuple[np.ndarray, np.ndarray]:
+    """The poses of ``trajectory`` nearest in time to ``stamps`` [S] (seconds), within ``max_diff``, matched as
+    :func:`associate_by_timestamp` matches. -> (found [S] bool, T_wc [S, 4, 4], identity where not found)"""
+    stamps = np.asarray(stamps, dtype=np.float64).reshape(-1)
+    matched, index = _nearest_time_matches(stamps, trajectory.timestamps, max_diff)
+    found = np.zeros(stamps.shape[0], dtype=bool)
+    found[matched] = True
+    T_wc = np.tile(np.eye(4), (stamps.shape[0], 1, 1))
+    T_wc[matched] = trajectory.T_wc[index]
+    return found, T_wc
 
 
 @dataclass(frozen=True, eq=False)

@@ -33,6 +33,7 @@ from mipslam.bench.scenarios.checkout import CONFIGS, parameters, sequence_confi
 from mipslam.config import Config, load_config
 from mipslam.datasets import make_sequence
 from mipslam.errors import MipslamError
+from mipslam.evaluation.loop_edges import fitness_bins
 from mipslam.geometry.se3 import rotation_angle, se3_exp, se3_inverse
 from mipslam.loop.from_config import registration_options
 from mipslam.loop.registration import register_rgbd_pair
@@ -82,16 +83,11 @@ def _by_fitness(edges: tuple[float, ...], fitness: list[float], errors_t: list[f
                 claimed_t: list[float]) -> list[dict]:
     """Median errors (cm, deg) and claimed translation (cm) of the accepted pairs whose fitness lies in each bin
     [edges[b], edges[b + 1]) (the last bin closed)."""
-    values = np.asarray(fitness, dtype=np.float64)
-    rows = []
-    for b, (low, high) in enumerate(zip(edges[:-1], edges[1:])):
-        inside = (values >= low) & ((values <= high) if b == len(edges) - 2 else (values < high))
-        pick = [n for n in range(len(values)) if inside[n]]
-        rows.append({"fitness": [low, high], "accepted": len(pick),
-                     "error_t_cm_median": _stats([errors_t[n] for n in pick])[0],
-                     "error_r_deg_median": _stats([errors_r[n] for n in pick])[0],
-                     "claimed_t_cm_median": _stats([claimed_t[n] for n in pick])[0]})
-    return rows
+    return [{"fitness": [low, high], "accepted": len(pick),
+             "error_t_cm_median": _stats([errors_t[n] for n in pick])[0],
+             "error_r_deg_median": _stats([errors_r[n] for n in pick])[0],
+             "claimed_t_cm_median": _stats([claimed_t[n] for n in pick])[0]}
+            for (low, high), pick in zip(zip(edges[:-1], edges[1:]), fitness_bins(fitness, edges))]
 
 
 def _shifted_ground_truth(config: Config, frame_times: np.ndarray, shift_s: float) -> tuple[torch.Tensor, np.ndarray]:
