@@ -5,7 +5,8 @@ errors into exit codes (0 success, 1 unexpected failure, 2 usage/config/data err
                 [--viewer [--viewer-host H] [--viewer-port P]]
     mipslam run --resume RUN_DIR [CONFIG] [--set k=v]...
     mipslam view RUN_DIR [--host H] [--port P] [--follow] [--map-only] [--screenshot PNG [--size WxH]]
-    mipslam eval RUN_DIR [--frames all|keyframes|non_keyframes] [--scales 0.25,1] [--modes point,eaa] [--every K]
+    mipslam eval RUN_DIR [--frames split|all|keyframes|non_keyframes] [--resolution native|mapping]
+                 [--scales 0.25,1] [--modes point,eaa] [--every K]
                  | --gt GT.txt --est EST.txt
     mipslam export RUN_DIR --mesh mesh.ply [--voxel-size M] [--overwrite]
     mipslam synth --out DIR --format replica|tum --trajectory loop ... [--overwrite]
@@ -125,15 +126,21 @@ def _build_parser() -> argparse.ArgumentParser:
                     help="metrics file to write (default: RUN_DIR/metrics.json for the run's own evaluation, "
                          "RUN_DIR/metrics_<label>.json beside it when scales, modes or other options differ; "
                          "--gt/--est: print only)")
-    ev.add_argument("--frames", choices=["all", "keyframes", "non_keyframes"], default=None,
-                    help="render metrics on all frames, keyframes (training views) or non-keyframes (novel views); "
-                         "default: the run's eval.frames")
+    ev.add_argument("--frames", choices=["split", "all", "keyframes", "non_keyframes"], default=None,
+                    help="render metrics on novel and training views as two rows (split: every 5th frame that is not "
+                         "a keyframe, as MonoGS, and the keyframes), or on one set: all frames, keyframes (training "
+                         "views) or non-keyframes (novel views); default: the run's eval.frames")
+    ev.add_argument("--resolution", choices=["native", "mapping"], default=None,
+                    help="what scale 1 is: native = the camera's own images (before dataset.downscale), mapping = "
+                         "the frames the run mapped; default: the run's eval.resolution")
     ev.add_argument("--scales", type=_float_list, default=None, metavar="S1,S2,...",
-                    help="render at these scales of the mapping resolution, e.g. 0.125,0.25,0.5,1,2 (default: eval.scales)")
+                    help="render at these scales of the --resolution reference, e.g. 0.125,0.25,0.5,1,2 "
+                         "(default: eval.scales)")
     ev.add_argument("--modes", type=_mode_list, default=None, metavar="M1,M2,...",
                     help="footprint modes to compare, e.g. point,mip,ewa,eaa (default: eval.modes, else the run's mode)")
     ev.add_argument("--every", type=int, default=None, metavar="K",
-                    help="evaluate every K-th frame of the set (default: at most 50 frames, 8 for multi-scale tables)")
+                    help="split: novel views at every K-th frames.json position (default 5); one set: every K-th "
+                         "frame of it (default: at most 50 frames, 8 for multi-scale tables)")
     ev.add_argument("--ground-truth", choices=["auto", "exact", "resampled"], default="auto",
                     help="ground truth at other scales: exact data_synth renders or area-resampled images (default auto)")
     ev.add_argument("--lpips", action=argparse.BooleanOptionalAction, default=True,
@@ -503,6 +510,7 @@ def _render_options(args):
         return None  # evaluate_run reports the missing file
     return RenderEvalOptions(
         frames=args.frames or eval_cfg.frames,
+        resolution=args.resolution or eval_cfg.resolution,
         scales=args.scales or tuple(eval_cfg.scales),
         modes=args.modes or tuple(eval_cfg.modes),
         every=args.every,
@@ -531,17 +539,26 @@ def _format_metrics(metrics: dict) -> str:
 
         first, by_fitness = summary_lines(loop_edges)
         lines.extend([f"loop edges against ground truth (medians): {first}", f"  {by_fitness}"])
+    size = metrics.get("map")
+    if size and "gaussians" in size:
+        lines.append(f"map: {size['gaussians']} Gaussians, {size['ply_mb']:.2f} MB ({size['file']})")
     render = metrics.get("render")
     if render:
         if "unavailable" in render:
             lines.append(f"render metrics unavailable: {render['unavailable']}")
-        frames = render.get("protocol", {}).get("frames", {})
-        if frames:
-            lines.append(f"render metrics on {len(frames['evaluated'])} of {frames['in_set']} frames "
-                         f"({frames['set']}, every {frames['every']})")
+        protocol = render.get("protocol", {})
+        reference = protocol.get("scale_reference", {})
+        if reference:
+            lines.append(f"render metrics at scales of the {reference['resolution']} resolution "
+                         f"{'x'.join(map(str, reference['size']))}, estimated poses, no exposure compensation")
+        from mipslam.evaluation.report import selection_text
+
+        for selection in protocol.get("frames", {}).get("views", []):
+            lines.append(selection_text(selection))
         for row in render.get("rows", []):
             psnr = "inf" if row["psnr"] is None else f"{row['psnr']:.2f}"
-            text = f"{row['mode']:>6} x{row['scale']:<6g} PSNR {psnr:>6} dB  SSIM {row['ssim']:.4f}"
+            text = (f"{row['views']:>13} {row['mode']:>6} x{row['scale']:<6g} {row['width']}x{row['height']} "
+                    f"PSNR {psnr:>6} dB  SSIM {row['ssim']:.4f}")
             if row.get("depth_l1") is not None:
                 text += f"  depth L1 {row['depth_l1'] * 100:.2f} cm"
             if row.get("lpips") is not None:

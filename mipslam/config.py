@@ -538,10 +538,17 @@ class LoopConfig:
 
 @dataclass(frozen=True)
 class EvalConfig:
+    """The run's own evaluation (``mipslam eval RUN_DIR`` and the end of ``mipslam run``; docs/evaluation.md)."""
+
     alignment: Literal["se3", "sim3", "none"] = "se3"
     association_tolerance_s: float = 0.02
-    frames: Literal["all", "keyframes", "non_keyframes"] = "all"
-    scales: tuple[float, ...] = (1.0,)
+    # split: two rows, novel views (MonoGS: frames.json positions 0, 5, 10, ... that are not keyframes) and
+    # training views (the keyframes); all | keyframes | non_keyframes: one row of that set
+    frames: Literal["split", "all", "keyframes", "non_keyframes"] = "split"
+    # what scale 1 means: native = the camera's own images (the dataset read with downscale 1, original
+    # intrinsics); mapping = the frames the run mapped (after dataset.downscale)
+    resolution: Literal["native", "mapping"] = "native"
+    scales: tuple[float, ...] = (1.0,)  # of the `resolution` reference
     modes: tuple[str, ...] = ()  # empty = the run's render mode
 
     def __post_init__(self):

@@ -8,9 +8,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import yaml
 
 from mipslam.cli import main
-from mipslam.config import load_config
+from mipslam.config import config_from_dict, load_config
 from mipslam.evaluation.render_eval import RenderEvalOptions, evaluate_render
 from mipslam.evaluation.report import MODE_COLORS, loop_closures, loop_text, plot_psnr_vs_scale, top_view_axes, write_report
 from mipslam.evaluation.run_eval import evaluation_label, evaluate_run
@@ -42,6 +43,7 @@ def test_report_writes_every_plot_and_the_page(tiny_run):
                                                              lpips=False))
     metrics = evaluate_run(tiny_run, render=False, report=False)
     metrics["render"] = evaluation.to_dict()
+    assert evaluation.view_sets == ("training",)  # no frame at positions 0, 3, ... is a novel view
     files = write_report(tiny_run, metrics, evaluation)
     assert set(files.images) == set(PLOTS)
     for name in PLOTS:
@@ -55,6 +57,11 @@ def test_report_writes_every_plot_and_the_page(tiny_run):
     assert "ATE RMSE" in page and "1 accepted, 0 rejected" in page
     for scale in ("0.25", "1"):
         assert f"<td>{scale}</td>" in page
+    assert "<th>views</th>" in page and page.count("<td class='l'>training</td>") == 4
+    # one view set: the headline names it; the map's size is there
+    assert "render x1 48x36 (eaa, training views)" in page
+    size = metrics["map"]
+    assert f"{size['gaussians']} Gaussians, {size['ply_mb']:.2f} MB (map.ply)" in page
     # the protocol in words, not raw JSON dumps
     assert "<h2>Protocol</h2>" in page and "<pre>" not in page and "&quot;" not in page
     assert "3 of 3 estimated poses matched" in page
@@ -81,7 +88,8 @@ def test_coinciding_curves_stay_visible(tmp_path):
 def test_single_scale_evaluation_plots_psnr_against_scale_from_the_showcase_frame(tiny_run, tmp_path):
     from mipslam.evaluation.report import _psnr_points, plot_psnr_vs_scale
 
-    evaluation = evaluate_render(tiny_run, RenderEvalOptions(every=3, lpips=False, showcase_scales=(0.5, 1.0)))
+    evaluation = evaluate_render(tiny_run, RenderEvalOptions(frames="all", every=3, lpips=False,
+                                                             showcase_scales=(0.5, 1.0)))
     assert evaluation.showcase.scales == (0.5, 1.0)
     assert set(evaluation.showcase.renders) == {(s, m) for s in (0.5, 1.0) for m in ("point", "mip", "eaa")}
     points, subtitle = _psnr_points(evaluation.to_dict(), evaluation.showcase)
@@ -107,8 +115,23 @@ def test_top_view_drops_the_axis_of_least_extent():
 
 def test_evaluation_label_names_what_differs_from_the_runs_eval_config(tiny_run):
     config = load_config(tiny_run / "config.yaml")
-    own = RenderEvalOptions(frames=config.eval.frames, scales=tuple(config.eval.scales), modes=tuple(config.eval.modes))
+    own = RenderEvalOptions(frames=config.eval.frames, resolution=config.eval.resolution,
+                            scales=tuple(config.eval.scales), modes=tuple(config.eval.modes))
+    assert (config.eval.frames, config.eval.resolution) == ("split", "native")
     assert evaluation_label(config) is None and evaluation_label(config, render_options=own) is None
+    assert evaluation_label(config, render_options=RenderEvalOptions()) is None
+    assert evaluation_label(config, render_options=RenderEvalOptions(resolution="mapping")) == "res-mapping"
+    assert evaluation_label(config, render_options=RenderEvalOptions(resolution="mapping", frames="all",
+                                                                     scales=(0.5, 1.0))) == "res-mapping_multiscale_all"
+    # a run whose config asks for the mapping resolution: that is its own evaluation, native is another
+    mapped = load_config(tiny_run / "config.yaml", overrides=["eval.resolution=mapping"])
+    assert evaluation_label(mapped, render_options=RenderEvalOptions(resolution="mapping")) is None
+    assert evaluation_label(mapped, render_options=RenderEvalOptions()) == "res-native"
+    # an old run's config.yaml without eval.resolution takes the default (native)
+    data = yaml.safe_load((tiny_run / "config.yaml").read_text())
+    del data["eval"]["resolution"]
+    old = config_from_dict(data)
+    assert old.eval.resolution == "native" and evaluation_label(old, render_options=own) is None
     assert evaluation_label(config, render_options=RenderEvalOptions(scales=(0.5, 1.0))) == "multiscale"
     assert evaluation_label(config, render_options=RenderEvalOptions(scales=(0.5,))) == "scale0p5"
     assert evaluation_label(config, render_options=RenderEvalOptions(modes=("point", "eaa"), every=2,
@@ -133,14 +156,16 @@ def test_cli_eval_with_other_scales_writes_beside_the_runs_metrics(tiny_run, cap
                  "--frames", "all"])
     assert code == 0
     out = capsys.readouterr().out
-    assert "render metrics on 2 of 3 frames" in out and "eaa x0.5" in out.replace("  ", " ")
+    assert "render metrics at scales of the native resolution 48x36" in out and "  all: 2 of 3 frames, every 2" in out
+    assert "all eaa x0.5 24x18 PSNR" in " ".join(out.split())
     assert "the run's own metrics.json is unchanged" in out
     assert (tiny_run / "metrics.json").read_bytes() == own
-    label = "multiscale_point-eaa_every2_nolpips"
+    label = "multiscale_point-eaa_all_every2_nolpips"
     metrics = json.loads((tiny_run / f"metrics_{label}.json").read_text())
     assert metrics["evaluation"] == {**metrics["evaluation"], "label": label, "metrics_file": f"metrics_{label}.json"}
     rows = metrics["render"]["rows"]
-    assert [(r["scale"], r["mode"]) for r in rows] == [(0.5, "point"), (0.5, "eaa"), (1.0, "point"), (1.0, "eaa")]
+    assert [(r["views"], r["scale"], r["mode"]) for r in rows] == [
+        ("all", 0.5, "point"), ("all", 0.5, "eaa"), ("all", 1.0, "point"), ("all", 1.0, "eaa")]
     assert metrics["render"]["protocol"]["frames"]["evaluated"] == [0, 2]
     assert metrics["trajectory"]["ate"]["count"] == FRAMES
 
@@ -159,6 +184,32 @@ def test_cli_eval_with_other_scales_writes_beside_the_runs_metrics(tiny_run, cap
 
     assert main(["eval", str(tiny_run), "--scales", "0,1"]) == 2
     assert main(["eval", str(tiny_run), "--modes", "box"]) == 2
+    assert main(["eval", str(tiny_run), "--resolution", "camera"]) == 2
+
+
+def test_cli_eval_prints_the_views_of_each_row_the_map_size_and_the_resolution_label(tmp_path, capsys):
+    run = make_tiny_run(tmp_path, kind="replica", downscale=2, frames=6)
+    assert main(["eval", str(run)]) == 0  # the run's own evaluation: split, native
+    out = capsys.readouterr().out
+    metrics = json.loads((run / "metrics.json").read_text())
+    size = metrics["map"]
+    assert f"map: {size['gaussians']} Gaussians, {size['ply_mb']:.2f} MB (map.ply)" in out
+    assert "native resolution 48x36" in out and "  novel views: 1 of 4 non-keyframes (MonoGS" in out
+    assert "  training views: 2 of 2 keyframes, every 1" in out
+    lines = [" ".join(line.split()) for line in out.splitlines()]
+    assert any(line.startswith("novel eaa x1 48x36 PSNR") for line in lines), out
+    assert any(line.startswith("training eaa x1 48x36 PSNR") for line in lines), out
+    # the report's headline names the novel-view row at scale 1 first, then the training views
+    page = (run / "report" / "report.html").read_text(encoding="utf-8")
+    novel = page.find("render x1 48x36 (eaa, novel views)")
+    training = page.find("render x1 48x36 (eaa, training views)")
+    assert 0 < novel < training, (novel, training)
+    assert "<td class='l'>novel</td>" in page and "MonoGS" in page and "native resolution 48x36" in page
+    assert main(["eval", str(run), "--no-lpips", "--no-report", "--resolution", "mapping"]) == 0
+    out = capsys.readouterr().out
+    assert "metrics_res-mapping_nolpips.json" in out and "mapping resolution 24x18" in out
+    rows = json.loads((run / "metrics_res-mapping_nolpips.json").read_text())["render"]["rows"]
+    assert [(r["views"], r["width"], r["height"]) for r in rows] == [("novel", 24, 18), ("training", 24, 18)]
 
 
 def test_cli_eval_out_says_where(tiny_run, tmp_path):

@@ -73,7 +73,8 @@ class BenchOutcome:
                 return "–" if x is None else f"{x.median:.{digits}f}"
             front = "".join(f for f, on in (("A", s.on_front_ate), ("P", s.on_front_psnr)) if on)
             lines.append(f"  {s.setting}: {med(s.fps, 2)} frames/s, ATE {med(s.ate_rmse_cm, 3)} cm, "
-                         f"lost {med(s.lost_frames, 0)}, PSNR {med(s.psnr_db, 2)} dB "
+                         f"lost {med(s.lost_frames, 0)}, PSNR {med(s.psnr_db, 2)} dB novel / "
+                         f"{med(s.psnr_train_db, 2)} dB train "
                          f"({s.jobs - s.failed}/{s.jobs} ok){' front ' + front if front else ''}")
         names = [self.files.markdown.name, self.files.plot.name, *(p.name for p in self.files.sweep_plots)]
         lines.append(f"results: {self.files.json}, {', '.join(names)}")

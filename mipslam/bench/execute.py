@@ -41,8 +41,9 @@ class JobResult:
     fps: frames / seconds of the SLAM stages (timings.json; excludes start-up and writing outputs).
     stage_ms_per_frame: stage -> total seconds / frames * 1000 (sums to 1000 / fps).
     wall_s: wall time of the ``mipslam run`` process (start-up and outputs included).
-    ate_rmse_cm: ATE RMSE after the run's alignment (se3 by default). psnr_db: training-view PSNR (keyframes,
-    mapping resolution, the run's footprint mode). device, torch_threads: from run.json.
+    ate_rmse_cm: ATE RMSE after the run's alignment (se3 by default). psnr_db: novel-view PSNR (MonoGS's every
+    5th frame that is not a keyframe, native resolution, the run's footprint mode); psnr_train_db: the same for the
+    training views (the keyframes). device, torch_threads: from run.json.
     system: "mipslam" or the peer's name. rpe_trans_cm / rpe_rot_deg: RPE RMSE over consecutive matched
     frames. lost_frames: frames without a pose (peers) or flagged as tracking failures (mipslam, which keeps
     a motion-model pose for them). For a peer, fps counts the peer's own per-frame processing (reading
@@ -67,6 +68,7 @@ class JobResult:
     stage_ms_per_frame: dict[str, float] = field(default_factory=dict)
     ate_rmse_cm: float | None = None
     psnr_db: float | None = None
+    psnr_train_db: float | None = None
     gaussians: int | None = None
     keyframes: int | None = None
     device: str | None = None
@@ -178,19 +180,28 @@ def read_job_outputs(run_dir: Path) -> dict[str, Any]:
 
 
 def read_evaluation(metrics: dict, render_mode: str, where: str) -> dict[str, Any]:
-    """ATE RMSE (cm) and the PSNR (dB) of the ``render_mode`` row at scale 1 of a metrics dict (from ``where``).
+    """ATE RMSE (cm) and the PSNR (dB) of the ``render_mode`` rows at scale 1 of a metrics dict (from ``where``):
+    ``psnr_db`` of the novel views, ``psnr_train_db`` of the training views (an evaluation of one frame set gives
+    its PSNR as ``psnr_db``).
 
-    PSNR None: not finite (an exact render) or not computed."""
+    PSNR None: not finite (an exact render), not computed, or no such view set (a clip without novel views)."""
     ate = (metrics.get("trajectory") or {}).get("ate") or {}
     if _finite(ate.get("rmse")) is None:
         raise MipslamError(f"{where}: no ATE RMSE in the evaluation")
     rows = (metrics.get("render") or {}).get("rows") or []
-    row = next((r for r in rows if r.get("mode") == render_mode and r.get("scale") == 1), rows[0] if rows else None)
-    if row is None:
+    if not rows:
         unavailable = (metrics.get("render") or {}).get("unavailable", "no render rows")
         raise MipslamError(f"{where}: no PSNR in the evaluation ({unavailable})")
-    return {"ate_rmse_cm": 100.0 * float(ate["rmse"]), "psnr_db": _finite(row.get("psnr")),
-            **_rpe_and_lost(metrics)}
+
+    def psnr_of(views: str | None) -> float | None:
+        of_views = [r for r in rows if views is None or r.get("views") == views]
+        row = next((r for r in of_views if r.get("mode") == render_mode and r.get("scale") == 1),
+                   of_views[0] if of_views else None)
+        return None if row is None else _finite(row.get("psnr"))
+
+    split = any(r.get("views") in ("novel", "training") for r in rows)
+    return {"ate_rmse_cm": 100.0 * float(ate["rmse"]), "psnr_db": psnr_of("novel" if split else None),
+            "psnr_train_db": psnr_of("training") if split else None, **_rpe_and_lost(metrics)}
 
 
 def _rpe_and_lost(metrics: dict) -> dict[str, Any]:
@@ -205,13 +216,15 @@ def _rpe_and_lost(metrics: dict) -> dict[str, Any]:
 
 def evaluate_job_run(run_dir: Path, render_mode: str) -> dict[str, Any]:
     """Evaluate a finished run folder in this process (:func:`~mipslam.evaluation.run_eval.evaluate_run`):
-    ATE of all frames, PSNR of the keyframes (training views) at the mapping resolution in ``render_mode``,
-    no LPIPS, no report. The metrics go to ``RUN/bench_eval.json``; returns ATE (cm) and PSNR (dB)."""
+    ATE of all frames, PSNR of the novel and the training views (``split``) at the native resolution in
+    ``render_mode``, no LPIPS, no report. The metrics go to ``RUN/bench_eval.json``; returns ATE (cm) and the two
+    PSNRs (dB)."""
     from mipslam.evaluation.render_eval import RenderEvalOptions
     from mipslam.evaluation.run_eval import evaluate_run
     from mipslam.io.run_folder import write_json_atomic
 
-    options = RenderEvalOptions(frames="keyframes", scales=(1.0,), modes=(render_mode,), lpips=False, showcase=False)
+    options = RenderEvalOptions(frames="split", resolution="native", scales=(1.0,), modes=(render_mode,), lpips=False,
+                                showcase=False)
     metrics = evaluate_run(run_dir, render_options=options, report=False)
     path = write_json_atomic(Path(run_dir) / EVAL_FILE, metrics)
     return read_evaluation(metrics, render_mode, str(path))

@@ -74,6 +74,7 @@ class SettingSummary:
     rpe_trans_cm: Spread | None = None
     rpe_rot_deg: Spread | None = None
     lost_frames: Spread | None = None
+    psnr_train_db: Spread | None = None  # training views (keyframes); psnr_db is of the novel views
 
     def to_dict(self) -> dict[str, Any]:
         def d(value):
@@ -83,7 +84,8 @@ class SettingSummary:
             "setting_index": self.setting_index, "setting": self.setting, "preset": self.preset,
             "assignments": list(self.assignments), "jobs": self.jobs, "failed": self.failed,
             "errors": list(self.errors), "fps": d(self.fps), "ate_rmse_cm": d(self.ate_rmse_cm),
-            "psnr_db": d(self.psnr_db), "wall_s": d(self.wall_s), "gaussians": d(self.gaussians),
+            "psnr_db": d(self.psnr_db), "psnr_train_db": d(self.psnr_train_db), "wall_s": d(self.wall_s),
+            "gaussians": d(self.gaussians),
             "keyframes": d(self.keyframes), "system": self.system, "rpe_trans_cm": d(self.rpe_trans_cm),
             "rpe_rot_deg": d(self.rpe_rot_deg), "lost_frames": d(self.lost_frames),
             "stage_ms_per_frame": {k: v.to_dict() for k, v in self.stage_ms_per_frame.items()},
@@ -133,7 +135,8 @@ def summarize(rows: Sequence[JobResult]) -> list[SettingSummary]:
             assignments=tuple(group[0].assignments), jobs=len(group), failed=len(group) - len(good),
             errors=tuple(f"repeat {r.repeat}: {r.error}" for r in group if not r.ok),
             fps=spread([r.fps for r in good]), ate_rmse_cm=spread([r.ate_rmse_cm for r in good]),
-            psnr_db=spread([r.psnr_db for r in good]), wall_s=spread([r.wall_s for r in good]),
+            psnr_db=spread([r.psnr_db for r in good]), psnr_train_db=spread([r.psnr_train_db for r in good]),
+            wall_s=spread([r.wall_s for r in good]),
             gaussians=spread([r.gaussians for r in good]), keyframes=spread([r.keyframes for r in good]),
             stage_ms_per_frame={k: v for k, v in stage_spreads.items() if v is not None},
             system=group[0].system, rpe_trans_cm=spread([r.rpe_trans_cm for r in good]),

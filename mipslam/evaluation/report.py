@@ -13,7 +13,8 @@ metrics it just computed:
 * ``gaussians.png``    Gaussian count after each frame, keyframes marked;
 * ``crops.png``        one frame at each scale, the same detailed region cut out, ground truth next to point / mip /
   eaa (nearest-neighbour display, so aliasing stays visible), with the full-image PSNR of each render;
-* ``report.html``      the headline numbers, the render table and the protocol in words, linking the images.
+* ``report.html``      the headline numbers (the novel-view row at scale 1 first, when there is one), the render
+  table (one group of rows per evaluated view set) and the protocol in words, linking the images.
 
 The page's main part is the run's own evaluation (``metrics.json``). An evaluation with other scales, modes or
 options (``metrics_<label>.json``, :func:`mipslam.evaluation.run_eval.evaluation_label`) gets its own section below
@@ -46,7 +47,8 @@ from mipslam.io.tum import read_tum_trajectory
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ReportFiles", "loop_closures", "loop_text", "overlap_styles", "top_view_axes", "write_report"]
+__all__ = ["ReportFiles", "loop_closures", "loop_text", "overlap_styles", "selection_text", "top_view_axes",
+           "write_report"]
 
 MODE_COLORS = {"point": "#d62728", "mip": "#1f77b4", "ewa": "#9467bd", "eaa": "#2ca02c", "exact": "#7f7f7f"}
 STAGE_COLORS = ("#4c72b0", "#dd8452", "#55a868", "#c44e52", "#8172b3", "#937860", "#da8bc3", "#8c8c8c")
@@ -205,8 +207,9 @@ def plot_translation_error(path: Path, times: np.ndarray, errors: np.ndarray, ke
     return _save(figure, path)
 
 
-def plot_psnr_vs_scale(path: Path, points: dict[str, list[tuple[float, float]]], subtitle: str) -> Path:
-    """points: mode -> [(scale, PSNR dB)]."""
+def plot_psnr_vs_scale(path: Path, points: dict[str, list[tuple[float, float]]], subtitle: str,
+                       reference: str = "mapping resolution") -> Path:
+    """points: mode -> [(scale, PSNR dB)]; reference: what scale 1 is (the x axis label)."""
     figure = _figure(6.4, 4.4)
     ax = figure.add_subplot()
     scales = sorted({s for values in points.values() for s, _ in values})
@@ -217,7 +220,7 @@ def plot_psnr_vs_scale(path: Path, points: dict[str, list[tuple[float, float]]],
     ax.set_xscale("log", base=2)
     ax.set_xticks(scales)
     ax.set_xticklabels([_scale_label(s) for s in scales])
-    ax.set_xlabel("rendering scale (x mapping resolution)")
+    ax.set_xlabel(f"rendering scale (x {reference})")
     ax.set_ylabel("PSNR [dB]")
     ax.grid(alpha=0.3, which="both")
     ax.set_title(f"PSNR against scale\n{subtitle}", fontsize=11)
@@ -331,16 +334,39 @@ def plot_crops(path: Path, showcase) -> Path:
 
 # ----------------------------------------------------------------------------- report
 
+def _first_view_set(rows: list[dict]) -> tuple[str | None, list[dict]]:
+    """The rows of the first evaluated view set (the novel views under ``split``): (its name, its rows)."""
+    views = rows[0].get("views") if rows else None
+    return views, [row for row in rows if row.get("views") == views]
+
+
+def _reference_text(render: dict | None) -> str:
+    """What scale 1 is, for labels: e.g. 'native resolution 640x480' (older metrics: the mapping resolution)."""
+    reference = ((render or {}).get("protocol") or {}).get("scale_reference") or {}
+    size = reference.get("size") or reference.get("mapping_resolution") or []
+    name = reference.get("resolution", "mapping")
+    return f"{name} resolution" + (f" {'x'.join(map(str, size))}" if size else "")
+
+
+def selection_text(selection: dict) -> str:
+    """One evaluated frame set of the render protocol (``render.protocol.frames.views[k]``) in words."""
+    views, count, in_set = selection["views"], len(selection["evaluated"]), selection["in_set"]
+    if views == "novel":
+        return f"  novel views: {count} of {in_set} non-keyframes ({selection['rule']})"
+    pool = {"training": "keyframes", "keyframes": "keyframes", "non_keyframes": "non-keyframes"}.get(views, "frames")
+    name = "training views" if views == "training" else views
+    return f"  {name}: {count} of {in_set} {pool}, every {selection['every']}"
+
+
 def _psnr_points(render: dict | None, showcase) -> tuple[dict[str, list[tuple[float, float]]], str]:
-    rows = (render or {}).get("rows", [])
+    views, rows = _first_view_set((render or {}).get("rows", []))
     scales = {row["scale"] for row in rows}
     if len(scales) > 1:
         points: dict[str, list[tuple[float, float]]] = {}
         for row in rows:
             if row["psnr"] is not None:
                 points.setdefault(row["mode"], []).append((row["scale"], row["psnr"]))
-        frames = render["protocol"]["frames"]
-        return points, f"mean over {len(frames['evaluated'])} frames ({frames['set']})"
+        return points, f"mean over {rows[0]['frames']} frames ({views or render['protocol']['frames']['set']})"
     if showcase is not None:
         from mipslam.evaluation.image_metrics import psnr
 
@@ -429,7 +455,8 @@ def _section_plots(folder: Path, metrics: dict, render_evaluation, label: str | 
     showcase = getattr(render_evaluation, "showcase", None)
     points, subtitle = _psnr_points(render, showcase)
     if points:
-        images["psnr_vs_scale"] = plot_psnr_vs_scale(folder / f"psnr_vs_scale{suffix}.png", points, subtitle)
+        images["psnr_vs_scale"] = plot_psnr_vs_scale(folder / f"psnr_vs_scale{suffix}.png", points, subtitle,
+                                                     _reference_text(render))
     if showcase is not None:
         images["crops"] = plot_crops(folder / f"crops{suffix}.png", showcase)
     return images
@@ -470,10 +497,11 @@ def _esc(value: Any) -> str:
 
 
 def _render_table(render_rows: list[dict]) -> list[str]:
-    parts = ["<table><tr><th>scale</th><th>size</th><th>mode</th><th>PSNR [dB]</th><th>SSIM</th><th>LPIPS</th>"
-             "<th>depth L1 [cm]</th><th>frames</th></tr>"]
+    parts = ["<table><tr><th>views</th><th>scale</th><th>size</th><th>mode</th><th>PSNR [dB]</th><th>SSIM</th>"
+             "<th>LPIPS</th><th>depth L1 [cm]</th><th>frames</th></tr>"]
     for row in render_rows:
-        parts.append(f"<tr><td>{row['scale']:g}</td><td>{row['width']}x{row['height']}</td><td class='l'>"
+        parts.append(f"<tr><td class='l'>{_esc(row.get('views', '-'))}</td><td>{row['scale']:g}</td>"
+                     f"<td>{row['width']}x{row['height']}</td><td class='l'>"
                      f"{_esc(row['mode'])}</td><td>{_fmt(row['psnr'], '.2f')}</td><td>{row['ssim']:.4f}</td>"
                      f"<td>{_fmt(row.get('lpips'), '.4f')}</td>"
                      f"<td>{_fmt(row.get('depth_l1') and row['depth_l1'] * 100, '.2f')}</td><td>{row['frames']}</td></tr>")
@@ -509,10 +537,15 @@ def _protocol_items(metrics: dict) -> list[str]:
         rp = render["protocol"]
         frames = rp.get("frames", {})
         scales = ", ".join(_scale_label(s) for s in rp.get("scales", []))
-        items.append(f"Rendering: {len(frames.get('evaluated', []))} of {frames.get('in_set')} frames "
-                     f"({frames.get('set')}, every {frames.get('every')}) rendered from the estimated poses at scale "
-                     f"{scales} of the mapping resolution {'x'.join(map(str, rp.get('scale_reference', {}).get('mapping_resolution', [])))}"
-                     f", footprint {', '.join(rp.get('modes', []))}.")
+        reference = rp.get("scale_reference", {})
+        other = "mapping" if reference.get("resolution") == "native" else "native"
+        other_size = reference.get(f"{other}_resolution")
+        items.append(f"Rendering: the map from the estimated poses, no exposure compensation, at scale {scales} of "
+                     f"the {_reference_text(render)}"
+                     + (f" ({other} resolution {'x'.join(map(str, other_size))})" if other_size else "")
+                     + f", footprint {', '.join(rp.get('modes', []))}.")
+        for selection in frames.get("views", []):
+            items.append(f"{selection_text(selection).strip()}.")
         truth = rp.get("ground_truth", {})
         if truth:
             items.append(f"Ground truth: {truth.get('source', '?')}"
@@ -554,6 +587,29 @@ def _path_text(path: dict) -> str:
     return f"{path['estimate'] * 100:.1f} cm against {path['ground_truth'] * 100:.1f} cm (x{path['ratio']:.2f})"
 
 
+_VIEWS_TEXT = {"novel": "novel views", "training": "training views", "all": "all frames",
+               "non_keyframes": "non-keyframes", "keyframes": "keyframes"}
+
+
+def _render_headline(render: dict) -> list[tuple[str, str]]:
+    """The headline's render lines: per view set (novel views first), the row nearest scale 1 in the run's mode."""
+    rows = render["rows"]
+    run_mode = render.get("protocol", {}).get("renderer", {}).get("run_mode", rows[0]["mode"])
+    sets = list(dict.fromkeys(row.get("views") for row in rows))
+    sets.sort(key=lambda views: views != "novel")
+    lines = []
+    for views in sets:
+        main = min((r for r in rows if r.get("views") == views),
+                   key=lambda r: (abs(math.log(r["scale"])), r["mode"] != run_mode))
+        what = _VIEWS_TEXT.get(views, views or "evaluated frames")
+        lines.append((f"render x{main['scale']:g} {main['width']}x{main['height']} ({main['mode']}, {what})",
+                      f"PSNR {_fmt(main['psnr'], '.2f', ' dB')}, SSIM {main['ssim']:.4f}, "
+                      f"LPIPS {_fmt(main.get('lpips'), '.4f')}, depth L1 "
+                      f"{_fmt(main.get('depth_l1') and main['depth_l1'] * 100, '.2f', ' cm')} over {main['frames']} "
+                      "frames"))
+    return lines
+
+
 def _main_html(metrics: dict, timings: dict | None, loops_data: Any, images: dict[str, Path]) -> list[str]:
     esc = _esc
     trajectory = metrics.get("trajectory", {})
@@ -561,14 +617,17 @@ def _main_html(metrics: dict, timings: dict | None, loops_data: Any, images: dic
     dataset = metrics.get("dataset", {})
     k = dataset.get("intrinsics", {})
     fps = (timings or {}).get("frames_per_second")
+    size = metrics.get("map") or {}
     headline = [
         ("sequence", f"{dataset.get('name', '?')} ({dataset.get('kind', '?')}), {metrics.get('frames_processed')} frames "
-                     f"at {k.get('width')}x{k.get('height')}"),
+                     f"mapped at {k.get('width')}x{k.get('height')}"),
         ("ATE RMSE", _ate_text(trajectory)),
         ("RPE per frame", f"{_fmt(rpe_t.get('rmse') and rpe_t['rmse'] * 100, '.2f', ' cm')}, "
                           f"{_fmt(rpe_r.get('rmse'), '.3f', ' deg')}"),
         ("path length", _path_text(trajectory.get("path_length") or {})),
         ("keyframes / Gaussians", f"{metrics.get('keyframes')} / {metrics.get('gaussians')}"),
+        *([("map size", f"{size['gaussians']} Gaussians, {size['ply_mb']:.2f} MB (map.ply)")]
+          if "gaussians" in size else []),
         ("tracking failures", str(metrics.get("tracking_failures", {}).get("count", 0))),
         ("loop closures", loop_text(loops_data)),
         *([("loop edges against ground truth (medians)", " ".join(summary_lines(metrics["loop_edges"])))]
@@ -578,11 +637,7 @@ def _main_html(metrics: dict, timings: dict | None, loops_data: Any, images: dic
     render = metrics.get("render") if isinstance(metrics.get("render"), dict) else None
     render_rows = (render or {}).get("rows", [])
     if render_rows:
-        run_mode = render.get("protocol", {}).get("renderer", {}).get("run_mode", render_rows[0]["mode"])
-        main = min(render_rows, key=lambda r: (abs(math.log(r["scale"])), r["mode"] != run_mode))
-        headline.append((f"render x{main['scale']:g} ({main['mode']})",
-                         f"PSNR {_fmt(main['psnr'], '.2f', ' dB')}, SSIM {main['ssim']:.4f}, "
-                         f"LPIPS {_fmt(main.get('lpips'), '.4f')}, depth L1 {_fmt(main.get('depth_l1') and main['depth_l1'] * 100, '.2f', ' cm')}"))
+        headline.extend(_render_headline(render))
     elif render and "unavailable" in render:
         headline.append(("render metrics", f"unavailable: {render['unavailable']}"))
     parts = ["<h2>Headline</h2><table>",

@@ -7,10 +7,11 @@ override it, renders the map for the render metrics (:mod:`mipslam.evaluation.re
 ``RUN_DIR/report/`` (:mod:`mipslam.evaluation.report`) and returns the dict for the metrics file.
 
 The run's own evaluation (its ``eval`` config, as ``mipslam run`` does at the end) is ``metrics.json``. Any other
-request (other scales, modes, frame set, frame step, ground truth, alignment, association, no LPIPS, no rendering)
-is named by what differs (:func:`evaluation_label`, e.g. ``multiscale`` or ``multiscale_point-eaa``) and belongs in
-``metrics_<label>.json`` beside it, with its own section of the report, so it never replaces the run's metrics;
-the same request made again replaces its own file.
+request (other resolution, scales, modes, frame set, frame step, ground truth, alignment, association, no LPIPS, no
+rendering) is named by what differs (:func:`evaluation_label`, e.g. ``multiscale`` or ``res-mapping_point-eaa``)
+and belongs in ``metrics_<label>.json`` beside it, with its own section of the report, so it never replaces the
+run's metrics; the same request made again replaces its own file. The dict's top-level ``"map"`` gives the final
+map's size (:func:`map_size`).
 """
 from __future__ import annotations
 
@@ -41,14 +42,16 @@ def _scale_text(scale: float) -> str:
 def evaluation_label(config, *, alignment: str | None = None, association: str | None = None,
                      max_diff: float | None = None, render: bool = True, render_options=None) -> str | None:
     """None when the request is the run's own evaluation (its ``eval`` config), else a file-name-safe name of
-    what differs, parts joined by ``_``: ``multiscale`` (several scales) or ``scale0p5``, the modes
-    (``point-eaa``), the frame set, ``every3``, ``gt-resampled``, ``nolpips``, ``trajectory`` (no rendering),
-    ``align-sim3``, ``match-index`` and ``maxdiff0p1``."""
+    what differs, parts joined by ``_``: ``res-mapping`` / ``res-native`` (the resolution), ``multiscale``
+    (several scales) or ``scale0p5``, the modes (``point-eaa``), the frame set, ``every3``, ``gt-resampled``,
+    ``nolpips``, ``trajectory`` (no rendering), ``align-sim3``, ``match-index`` and ``maxdiff0p1``."""
     cfg = config.eval
     parts: list[str] = []
     if not render:
         parts.append("trajectory")
     elif render_options is not None:
+        if render_options.resolution != cfg.resolution:
+            parts.append(f"res-{render_options.resolution}")
         scales = tuple(float(s) for s in render_options.scales)
         if sorted(set(scales)) != sorted(set(float(s) for s in cfg.scales)):
             parts.append("multiscale" if len(set(scales)) > 1 else f"scale{_scale_text(scales[0])}")
@@ -73,6 +76,15 @@ def evaluation_label(config, *, alignment: str | None = None, association: str |
     return "_".join(parts) or None
 
 
+def map_size(path: Path) -> dict:
+    """The final map's size: Gaussian count (the PLY header's vertex count) and file size in MB (10^6 bytes)."""
+    from mipslam.io.ply import ply_vertex_count
+
+    if not path.is_file():
+        return {"file": path.name, "unavailable": f"{path} is missing"}
+    return {"file": path.name, "gaussians": ply_vertex_count(path), "ply_mb": round(path.stat().st_size / 1e6, 3)}
+
+
 def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, association: str | None = None,
                  max_diff: float | None = None, render: bool = True, render_options=None,
                  report: bool = True) -> dict:
@@ -80,7 +92,7 @@ def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, associati
 
     render: also compute render metrics (``render_options``: a
     :class:`~mipslam.evaluation.render_eval.RenderEvalOptions`; None = the run's ``eval`` config:
-    frames, scales, modes). When the dataset folder is gone the render section says why it is
+    frames, resolution, scales, modes). When the dataset folder is gone the render section says why it is
     unavailable and the trajectory metrics are still returned. report: write ``RUN_DIR/report/`` (the run's own
     evaluation as the page's main part, any other as its own section; see the module docstring).
 
@@ -125,6 +137,7 @@ def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, associati
         "frames_processed": info["frames_processed"],
         "keyframes": info["keyframes"],
         "gaussians": info["gaussians"],
+        "map": map_size(folder.map_ply),
         "tracking_failures": {"count": len(flagged), "frames": flagged,
                               "note": "flagged frames keep their motion-model pose and are included in the ATE"},
         "trajectory": trajectory,
@@ -142,8 +155,8 @@ def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, associati
         from mipslam.evaluation.render_eval import RenderEvalOptions, evaluate_render
 
         if render_options is None:
-            render_options = RenderEvalOptions(frames=config.eval.frames, scales=tuple(config.eval.scales),
-                                               modes=tuple(config.eval.modes))
+            render_options = RenderEvalOptions(frames=config.eval.frames, resolution=config.eval.resolution,
+                                               scales=tuple(config.eval.scales), modes=tuple(config.eval.modes))
         try:
             evaluation = evaluate_render(folder.root, render_options)
             metrics["render"] = evaluation.to_dict()

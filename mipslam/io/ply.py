@@ -171,6 +171,19 @@ def _parse_header(path: Path, raw: bytes) -> tuple[int, np.dtype, int]:
     return count, np.dtype(fields), data_start
 
 
+def ply_vertex_count(path: str | Path) -> int:
+    """The Gaussian count of a 3DGS PLY from its header alone (the data is not read)."""
+    path = Path(path)
+    try:
+        with path.open("rb") as handle:
+            raw = handle.read(MAX_HEADER_BYTES)
+    except FileNotFoundError:
+        raise DatasetError(path, "PLY file not found") from None
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read PLY file ({exc.strerror or exc})") from None
+    return _parse_header(path, raw)[0]
+
+
 def read_ply(path: str | Path) -> SplatPly:
     """Read and validate a 3DGS PLY (see the module docstring) -> float32 CPU tensors."""
     path = Path(path)

@@ -57,7 +57,8 @@ def _run_one(sequence: Path, out: Path, weight: float, overrides: tuple[str, ...
     run_slam(config, run_dir, evaluate=False)
     seconds = time.perf_counter() - start
     trajectory = evaluate_run(run_dir, render=False, report=False)["trajectory"]
-    evaluation = evaluate_render(run_dir, RenderEvalOptions(frames="all", every=1, showcase=False))
+    evaluation = evaluate_render(run_dir, RenderEvalOptions(frames="all", resolution="mapping", every=1,
+                                                            showcase=False))
     timings = json.loads((run_dir / "timings.json").read_text())
 
     def mean(values):

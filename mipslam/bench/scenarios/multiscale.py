@@ -98,7 +98,8 @@ def _own_maps_table(name: str, config_path: Path, dataset_overrides: list[str], 
             _run(config_path, runs[mode], [*dataset_overrides, f"render.mode={mode}", *overrides])
     table = {}
     for mode, run_dir in runs.items():
-        evaluation = evaluate_render(run_dir, RenderEvalOptions(scales=SCALES, modes=(mode,), every=every, lpips=False,
+        evaluation = evaluate_render(run_dir, RenderEvalOptions(frames="all", resolution="mapping", scales=SCALES,
+                                                                modes=(mode,), every=every, lpips=False,
                                                                 showcase=False))
         metrics = json.loads((run_dir / "metrics.json").read_text())
         table[mode] = {"rows": {row.scale: row for row in evaluation.rows},
@@ -132,7 +133,8 @@ def _evaluate(run_dir: Path, every: int | None):
     from mipslam.evaluation.render_eval import RenderEvalOptions, evaluate_render
 
     start = time.perf_counter()
-    evaluation = evaluate_render(run_dir, RenderEvalOptions(scales=SCALES, modes=MODES, every=every, lpips=False,
+    evaluation = evaluate_render(run_dir, RenderEvalOptions(frames="all", resolution="mapping", scales=SCALES,
+                                                            modes=MODES, every=every, lpips=False,
                                                             showcase_scales=SCALES))
     return evaluation, time.perf_counter() - start
 
