@@ -436,6 +436,23 @@ class MappingConfig:
 
 
 @dataclass(frozen=True)
+class RefineConfig:
+    """The map refinement over every keyframe after the last frame (``mapping.final_iterations`` steps) and of
+    ``mipslam refine`` (mipslam/refinement.py; docs/mapping.md, "The final refinement")."""
+
+    alpha_color: float = 0.9  # colour L1 against depth L1: no frame tracks against the map any more
+    ssim_weight: float = 0.2  # weight of 1 - SSIM (3D Gaussian Splatting's 0.2)
+    isotropy_weight: float = 0.0  # metres; thin structures need elongated Gaussians
+    lr_poses: float = 0.0  # Adam rate of the keyframe poses (m, rad); 0 keeps them fixed
+
+    def __post_init__(self):
+        _check(0 <= self.alpha_color <= 1, "refine.alpha_color", "must be in [0, 1]")
+        _check(self.ssim_weight >= 0, "refine.ssim_weight", "must be >= 0")
+        _check(self.isotropy_weight >= 0, "refine.isotropy_weight", "must be >= 0")
+        _check(self.lr_poses >= 0, "refine.lr_poses", "must be >= 0 (0 = poses fixed)")
+
+
+@dataclass(frozen=True)
 class LoopConfig:
     """Loop closure and SA-PGO (docs/pgo.md): detection, verification, pose graph, map correction."""
 
@@ -565,6 +582,7 @@ class Config:
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
+    refine: RefineConfig = field(default_factory=RefineConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
 

@@ -18,8 +18,8 @@ On each keyframe (DESIGN.md "Losses" and "Model only what a scene requires"):
    covers the whole map;
 3. prune Gaussians with negligible opacity, non-finite values or an absurd size, and enforce the cap.
 
-After the last frame, :meth:`Mapper.refine` takes ``final_iterations`` further steps of the same loss
-over all keyframes at fixed poses (the pipeline's final refinement).
+After the last frame, :func:`refine_map` takes ``final_iterations`` steps of the refinement loss over all
+keyframes (mipslam/refinement.py; the pipeline's final refinement).
 
 The stage's steps in the frame loop read and update the :class:`~mipslam.state.SLAMState`:
 :func:`map_keyframe` (a new keyframe), :func:`refine_after_correction` (after a loop correction) and
@@ -53,6 +53,7 @@ from mipslam.geometry.se3 import se3_exp, se3_inverse
 from mipslam.losses.frequency import frequency_loss
 from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, coverage_loss, rgbd_l1_loss, rgbd_masks
 from mipslam.losses.regularizers import isotropy_loss
+from mipslam.refinement import KeyframeImage, KeyframeRefiner, RefineKeyframe, RefineOptions
 from mipslam.rendering import frustum_indices, render_view, view_sampling_rates
 from mipslam.types import Intrinsics
 
@@ -191,20 +192,17 @@ class Mapper:
     # ------------------------------------------------------------------ optimisation
 
     def view_loss(self, gmap: GaussianMap, view: MappingView, T_cw: torch.Tensor,
-                  masks: RGBDMasks | None = None, rows: torch.Tensor | None = None, *,
-                  final: bool = False) -> torch.Tensor:
+                  masks: RGBDMasks | None = None, rows: torch.Tensor | None = None) -> torch.Tensor:
         """The mapping loss of one view (module docstring), differentiable w.r.t. the map and ``T_cw`` [4, 4]
         (world-to-camera, the map's dtype and device). Returns a scalar tensor.
 
         What :meth:`optimize` computes once per view and passes in: ``masks``, the view's
         :func:`rgbd_masks` (they depend on the targets alone), and ``rows`` [M] int64, the Gaussians
         the view can draw (:func:`frustum_indices`); the others would get zero gradients anyway.
-        ``final``: a step of the final refinement (``mapping.freq_moves_geometry`` "final" applies).
         """
         cfg = self.config
         g = gmap.activated(rows)
-        appearance = cfg.lambda_freq > 0 and not (cfg.freq_moves_geometry == "always"
-                                                  or (final and cfg.freq_moves_geometry == "final"))
+        appearance = cfg.lambda_freq > 0 and cfg.freq_moves_geometry != "always"
         out = render_view(g, T_cw, view.intrinsics, self.render_config, appearance_color=appearance)
         color = apply_affine_exposure(out.color, view.exposure[0], view.exposure[1])
         if masks is None:
@@ -267,25 +265,6 @@ class Mapper:
             for i, delta in pose_deltas.items()
         )
         return first, last, refined
-
-    def refine(self, gmap: GaussianMap, optimizer: GaussianOptimizer, views: Iterable[MappingView]) -> list[float]:
-        """One Adam step of the mapping loss per view, in the order given; poses stay fixed, nothing is added
-        or pruned. Returns the loss of each step taken; stops at a non-finite loss without stepping.
-
-        The final refinement over all keyframes (``mapping.final_iterations``): ``views`` may be a generator,
-        so a long run's keyframes need not all be in memory at once.
-        """
-        losses = []
-        for view in views:
-            T_cw = se3_inverse(view.T_wc).to(device=gmap.device, dtype=gmap.dtype)
-            loss = self.view_loss(gmap, view, T_cw, *self._view_inputs(gmap, view, T_cw), final=True)
-            if not torch.isfinite(loss):
-                break
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
-            losses.append(float(loss.detach()))
-        return losses
 
     def _view_inputs(self, gmap: GaussianMap, view: MappingView,
                      T_cw: torch.Tensor) -> tuple[RGBDMasks, torch.Tensor | None]:
@@ -356,20 +335,33 @@ def refine_after_correction(mapper: Mapper, state: "SLAMState", frames: "FrameCa
     return iterations
 
 
-def refine_map(mapper: Mapper, state: "SLAMState", frames: "FrameCache") -> int:
-    """The final refinement: ``mapping.final_iterations`` mapping steps after the last frame, one keyframe per
-    step, every keyframe once per pass in an order drawn from the run's generator; poses fixed. Returns the
-    steps taken (fewer if a loss turned non-finite; the map then keeps its last finite state)."""
+def refine_map(mapper: Mapper, state: "SLAMState", frames: "FrameCache", options: RefineOptions) -> int:
+    """The final refinement (mipslam/refinement.py): ``mapping.final_iterations`` steps of the refinement loss
+    after the last frame, one keyframe per step, every keyframe once per pass in an order drawn from the run's
+    generator. Keyframe poses move only with ``options.lr_poses`` > 0; every frame then follows its keyframes
+    (:meth:`SLAMState.correct_keyframe_poses`, the map held where the refinement left it). Returns the steps taken
+    (fewer if a loss turned non-finite; the map then keeps its last finite state)."""
     iterations, count = mapper.config.final_iterations, len(state.keyframe_frames)
     if iterations == 0 or count == 0:
         return 0
-    passes = -(-iterations // count)
-    order = torch.cat([torch.randperm(count, generator=state.generator) for _ in range(passes)])[:iterations]
-    # Mapper.refine never moves a pose
-    views = (mapping_view(state, frames, int(k), mapper.keyframe_images) for k in order)
-    losses = mapper.refine(state.gaussian_map, state.optimizer, views)
+    keyframes = [RefineKeyframe(kf, state.keyframe_record(kf).index, state.keyframe_record(kf).T_wc,
+                                state.keyframe_record(kf).exposure) for kf in range(count)]
+
+    def load(keyframe: RefineKeyframe) -> KeyframeImage:
+        frame, _ = mapper.keyframe_images.get(frames, keyframe.frame_index)
+        return KeyframeImage(frame.color, frame.depth, frame.intrinsics)
+
+    refiner = KeyframeRefiner(state.gaussian_map, state.optimizer, keyframes, load, options, mapper.render_config,
+                              state.generator, cache_size=max(count, mapper.config.keyframe_cache))
+    losses = refiner.run(iterations)
+    refined = refiner.refined_poses()
+    if refined:
+        poses = state.keyframe_poses()
+        for keyframe_id, T_wc in refined:
+            poses[keyframe_id] = nearest_rigid(T_wc)
+        state.correct_keyframe_poses(poses, move_map=False)
     if losses:
         n = min(count, len(losses))
-        log.info("final refinement: %d steps over %d keyframes; mean mapping loss %.4f over the first %d steps, "
+        log.info("final refinement: %d steps over %d keyframes; mean loss %.4f over the first %d steps, "
                  "%.4f over the last %d", len(losses), count, sum(losses[:n]) / n, n, sum(losses[-n:]) / n, n)
     return len(losses)

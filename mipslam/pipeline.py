@@ -27,6 +27,7 @@ from mipslam.io.run_folder import write_json_atomic
 from mipslam.keyframes import insert_keyframe, keyframe_decision
 from mipslam.loop.closer import LoopCloser, VerificationHook, close_loops
 from mipslam.mapping import Mapper, map_keyframe, refine_map
+from mipslam.refinement import refine_options
 from mipslam.observer import Observer
 from mipslam.run_control import FrameLoop, PreparedRun, RunSummary, prepare_run, resolve_device, write_checkpoint
 from mipslam.sensor_sync import SensorTiming, predicted_velocity, recorded_velocity, synchronised, tracked_velocity
@@ -179,7 +180,7 @@ def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evalu
     # the state the frames left (as an uninterrupted run would), and resuming a finished run repeats it exactly.
     if config.mapping.final_iterations and len(state.gaussian_map):
         with observer.stage("refine"):
-            refine_map(stages.mapper, state, stages.frames)
+            refine_map(stages.mapper, state, stages.frames, refine_options(config))
     metrics = _write_outputs(run, config, evaluate)
     return RunSummary(run.folder.root, state.next_frame, len(state.keyframe_frames),
                       sum(not f.tracked for f in state.frames), len(state.gaussian_map),

@@ -119,17 +119,17 @@ class SLAMState:
         self.frames = [replace(record, T_wc=T_wc[k].to(torch.float64).cpu().clone())
                        for k, record in enumerate(self.frames)]
 
-    def correct_keyframe_poses(self, T_wc_new: torch.Tensor) -> int:
+    def correct_keyframe_poses(self, T_wc_new: torch.Tensor, *, move_map: bool = True) -> int:
         """Apply a pose-graph correction: keyframes take their new poses, every other frame moves with the
-        keyframes around it, and every Gaussian moves with its anchor keyframe.
+        keyframes around it, and (``move_map``) every Gaussian moves with its anchor keyframe.
 
         T_wc_new: corrected poses of all keyframes   # [K, 4, 4]
         With ``C_k = T_new_k inv(T_old_k)``: a non-keyframe tracked after keyframe r, a fraction ``s`` of the
         frames from r to the next keyframe n, becomes ``interpolate_pose(C_r T_wc, C_n T_wc, s)``; after the
         newest keyframe (no n yet) it becomes ``C_r T_wc``. Moving a whole stretch by ``C_r`` alone would leave
         a step at n wherever the graph corrects neighbouring keyframes differently. Frames without a reference
-        keyframe stay. :meth:`GaussianMap.transform_by_anchor` applies ``C`` to the map. Returns how many
-        Gaussians moved.
+        keyframe stay. :meth:`GaussianMap.transform_by_anchor` applies ``C`` to the map; without ``move_map`` (the
+        map was fitted at the new poses already) it stays. Returns how many Gaussians moved.
         """
         T_old = self.keyframe_poses()
         if T_wc_new.shape != T_old.shape:
@@ -153,7 +153,7 @@ class SLAMState:
                 T = interpolate_pose(T, corrections[following] @ record.T_wc.to(torch.float64),
                                      (position - start) / (end - start))
             self.frames[position] = replace(record, T_wc=T)
-        return self.gaussian_map.transform_by_anchor(corrections)
+        return self.gaussian_map.transform_by_anchor(corrections) if move_map else 0
 
     def append_frame(self, index: int, timestamp: float, tracked: "TrackingResult", is_keyframe: bool) -> FrameRecord:
         """Record a tracked frame (sequence ``index``, ``timestamp`` in seconds); a keyframe takes the next
