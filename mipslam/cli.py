@@ -4,7 +4,9 @@ errors into exit codes (0 success, 1 unexpected failure, 2 usage/config/data err
     mipslam run CONFIG [--preset P] [--set k=v]... [--out DIR [--overwrite]]
                 [--viewer [--viewer-host H] [--viewer-port P]]
     mipslam run --resume RUN_DIR [CONFIG] [--set k=v]...
-    mipslam view RUN_DIR [--host H] [--port P] [--follow] [--map-only] [--screenshot PNG [--size WxH]]
+    mipslam refine RUN_DIR [--minutes M] [--iterations N] [--resolution mapping|native] [--restart]
+                   [--eval-every-minutes E] [--no-eval]
+    mipslam view RUN_DIR [--host H] [--port P] [--follow] [--map-only] [--slam-map] [--screenshot PNG [--size WxH]]
     mipslam eval RUN_DIR [--frames split|all|keyframes|non_keyframes] [--resolution native|mapping]
                  [--scales 0.25,1] [--modes point,eaa] [--every K]
                  | --gt GT.txt --est EST.txt
@@ -73,6 +75,36 @@ def _mode_list(text: str) -> tuple[str, ...]:
     if not values or unknown:
         raise argparse.ArgumentTypeError(f"expected modes from {', '.join(MODES)} separated by commas, got {text!r}")
     return values
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (value > 0 and value != float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return value
+
+
+def _non_negative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (value >= 0 and value != float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return value
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
+    return value
 
 
 def _port(text: str) -> int:
@@ -246,6 +278,26 @@ def _build_parser() -> argparse.ArgumentParser:
     vocab.add_argument("--vocab-max-images", type=int, default=0, metavar="N",
                        help="use at most N training images, evenly spaced (default 0: all)")
 
+    rf = sub.add_parser("refine", help="keep optimising a finished run's map over all its keyframes; the refined "
+                                       "map goes to RUN_DIR/refined/ (Ctrl-C-safe, run again to continue)")
+    rf.add_argument("run_dir", type=Path, help="run folder written by 'mipslam run' (finished)")
+    rf.add_argument("--minutes", type=_positive_float, default=None, metavar="M",
+                    help="refinement time of this session in minutes (the steps' own time, evaluations excluded; "
+                         "default 10 when --iterations is not given either)")
+    rf.add_argument("--iterations", type=_non_negative_int, default=None, metavar="N",
+                    help="steps of this session (one keyframe per step); with --minutes, whichever comes first; 0 = "
+                         "no step: write and evaluate the map as it is")
+    rf.add_argument("--resolution", choices=["mapping", "native"], default=None,
+                    help="train on the keyframes at the run's mapping resolution (default; the dataset read as the "
+                         "run read it) or the camera's own (dataset.downscale 1); continuing keeps the refinement's")
+    rf.add_argument("--restart", action="store_true",
+                    help="start over from the SLAM map, replacing RUN_DIR/refined/ (default: continue it)")
+    rf.add_argument("--eval-every-minutes", type=_non_negative_float, default=1.0, metavar="E",
+                    help="refinement minutes between progress evaluations (novel and training views, at most 8 "
+                         "frames each, native resolution, no LPIPS; default 1; 0 = only before and at the end)")
+    rf.add_argument("--no-eval", action="store_true",
+                    help="skip the full evaluation at the end (refined/metrics.json)")
+
     vw = sub.add_parser("view", help="show a run folder in the browser (map, trajectories, keyframes, loops)")
     vw.add_argument("run_dir", type=Path, help="run folder written by 'mipslam run'")
     vw.add_argument("--host", default="127.0.0.1",
@@ -253,6 +305,9 @@ def _build_parser() -> argparse.ArgumentParser:
     vw.add_argument("--port", type=_port, default=8080, help="port (default 8080; the next free one when busy)")
     vw.add_argument("--follow", action="store_true", help="move the view with the frame chosen on the slider")
     vw.add_argument("--map-only", action="store_true", help="draw the Gaussians alone (no trajectories or cameras)")
+    vw.add_argument("--slam-map", action="store_true",
+                    help="show the SLAM map (map.ply, traj_est.txt) where 'mipslam refine' wrote a refined one "
+                         "(shown by default)")
     vw.add_argument("--screenshot", type=Path, metavar="PNG",
                     help="save a screenshot of the page (headless Chromium) to PNG and exit instead of serving")
     vw.add_argument("--size", default="960x640", metavar="WxH", help="screenshot size in pixels (default 960x640)")
@@ -422,7 +477,8 @@ def _cmd_view(args) -> int:
         except ValueError:
             raise _UsageError(f"mipslam view: --size expects WIDTHxHEIGHT, e.g. 960x640, got {args.size!r}") from None
         viewer = RecordedViewer(args.run_dir, ViewerOptions(host="127.0.0.1", port=0, follow=args.follow,
-                                                            map_only=args.map_only))
+                                                            map_only=args.map_only), refined=not args.slam_map)
+        log.info("viewer: showing %s", viewer.describe_map())
         try:
             out = screenshot(viewer.url, args.screenshot, width=width, height=height,
                              ready=lambda: viewer.server.clients > 0)
@@ -431,8 +487,9 @@ def _cmd_view(args) -> int:
         print(f"screenshot of {args.run_dir} written to {out}")
         return EXIT_OK
     viewer = RecordedViewer(args.run_dir, ViewerOptions(host=args.host, port=args.port, follow=args.follow,
-                                                        map_only=args.map_only))
+                                                        map_only=args.map_only), refined=not args.slam_map)
     print(f"viewer: {viewer.url} (Ctrl-C to close)", flush=True)
+    log.info("viewer: showing %s", viewer.describe_map())
     try:
         while True:
             time.sleep(3600)
@@ -440,6 +497,17 @@ def _cmd_view(args) -> int:
         return EXIT_OK
     finally:
         viewer.close()
+
+
+def _cmd_refine(args) -> int:
+    from mipslam.refine_run import RefineRequest, refine_run
+
+    request = RefineRequest(minutes=args.minutes, iterations=args.iterations, resolution=args.resolution,
+                            restart=args.restart, eval_every_minutes=args.eval_every_minutes,
+                            evaluate=not args.no_eval)
+    summary = refine_run(args.run_dir, request)
+    print(summary.describe())
+    return EXIT_OK
 
 
 def _cmd_eval(args) -> int:
@@ -766,7 +834,7 @@ def _cmd_bench(args) -> int:
 
 
 _COMMANDS = {"bench": _cmd_bench, "run": _cmd_run, "eval": _cmd_eval, "synth": _cmd_synth, "config": _cmd_config,
-             "export": _cmd_export, "view": _cmd_view}
+             "export": _cmd_export, "view": _cmd_view, "refine": _cmd_refine}
 
 
 def _configure_logging(debug: bool, quiet: bool) -> None:

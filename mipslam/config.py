@@ -378,13 +378,13 @@ class MappingConfig:
     lambda_freq: float = 0.0
     freq_patch: int = 16
     freq_alpha: float = 1.0
-    # When the frequency loss's gradient may move the geometry (means, shapes, opacities) and the keyframe poses;
-    # otherwise it moves the colours alone, as if the image it scores were rendered with the geometry and the pose
-    # held fixed. "always"; "final": only in the final refinement (final_iterations), after the last frame has
-    # been tracked; "never". On rendered images every edge is geometry and "always" tracks best; on a real
-    # camera's the loss pulls the geometry after detail that tracking then reads wrong, and configs/tum.yaml
-    # takes "final" (docs/mapping.md, "The frequency loss and the geometry").
-    freq_moves_geometry: Literal["never", "final", "always"] = "always"
+    # When the frequency loss's gradient may move the geometry (means, shapes, opacities) and the keyframe poses
+    # in mapping: "always"; "final": never while frames are tracked (it moves the colours alone, as if the image it
+    # scores were rendered with the geometry and the pose held fixed), so only the final refinement's loss moves
+    # them. On rendered images every edge is geometry and "always" tracks best; on a real camera's the loss pulls
+    # the geometry after detail that tracking then reads wrong, and configs/tum.yaml takes "final"
+    # (docs/mapping.md, "The frequency loss and the geometry").
+    freq_moves_geometry: Literal["final", "always"] = "always"
     add_opacity_threshold: float = 0.5
     add_depth_error_ratio: float = 10.0  # depth error above ratio * median error adds Gaussians
     densify_pixel_stride: int = 1  # one new Gaussian per stride x stride pixels

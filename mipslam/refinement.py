@@ -106,7 +106,6 @@ class KeyframeRefiner:
         self.steps = 0
         self._pending: list[int] = []  # positions in self.keyframes still to visit in this pass
         self._images: OrderedDict[int, tuple[KeyframeImage, RGBDMasks]] = OrderedDict()
-        self._rows: dict[int, tuple[int, torch.Tensor | None]] = {}  # position -> (map size, frustum rows)
         device, dtype = gmap.device, gmap.dtype
         optimise_poses = options.lr_poses > 0
         # left increments T_cw = exp(xi) T_cw0, xi [K, 6] = [rho m, phi rad] in the camera frame
@@ -242,19 +241,12 @@ class KeyframeRefiner:
         return entry
 
     def _frustum_rows(self, position: int, intrinsics: Intrinsics) -> torch.Tensor | None:
-        """The Gaussians keyframe ``position`` can draw (:func:`frustum_indices` at its starting pose), computed
-        once per map size (a step never adds or removes Gaussians; the refinement's steps move them little)."""
-        size = len(self.map)
-        cached = self._rows.get(position)
-        if cached is not None and cached[0] == size:
-            return cached[1]
+        """The Gaussians keyframe ``position`` can draw from where they are now (:func:`frustum_indices`), the
+        others would get zero gradients; computed at every step, so a resumed refinement draws exactly the rows
+        an uninterrupted one draws."""
         seen = frustum_indices(self.map.means.detach(), torch.exp(self.map.log_scales.detach()),
                                self._T_cw[position], intrinsics, self.render_config)
-        rows = None if len(seen) == size else seen
-        self._rows[position] = (size, rows)
-        return rows
-
-
+        return None if len(seen) == len(self.map) else seen
 
 def refine_options(config: Config) -> RefineOptions:
     """The refinement loss of the ``refine`` config section, with the mapping section's frequency loss and depth

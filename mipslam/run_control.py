@@ -139,20 +139,20 @@ def _restore(folder: RunFolder, config: Config, device: torch.device, observer: 
 
 
 @contextmanager
-def ctrl_c_after_the_frame() -> Iterator[list[bool]]:
+def ctrl_c_after_the_frame(unit: str = "frame") -> Iterator[list[bool]]:
     """While the frame loop runs, a first Ctrl-C (SIGINT) only asks to stop: the current frame is
     completed, so the checkpoint written then holds a consistent state (a frame interrupted inside
     mapping would leave keyframe, window, map and loop-closure state out of step, and such a
     checkpoint cannot be resumed). A second Ctrl-C interrupts at once. Yields a list that becomes
     non-empty when a stop was asked for. Where handlers cannot be set (not the main thread), Ctrl-C
-    keeps its default behaviour."""
+    keeps its default behaviour. ``unit``: what is completed, in the message (``mipslam refine``: a step)."""
     requested: list[bool] = []
 
     def ask_to_stop(signum, frame):
         if requested:
             raise KeyboardInterrupt
         requested.append(True)
-        log.warning("Ctrl-C: stopping after the current frame (press Ctrl-C again to stop at once)")
+        log.warning("Ctrl-C: stopping after the current %s (press Ctrl-C again to stop at once)", unit)
 
     try:
         previous = signal.signal(signal.SIGINT, ask_to_stop)

@@ -2,7 +2,8 @@
 
 Protocol (written into ``metrics.json`` under ``"render"`` by :meth:`RenderEvaluation.to_dict`):
 
-* **Map and pose.** The map is ``map.ply`` (the final map of the run). Every evaluated frame is rendered from its
+* **Map and pose.** The map is ``map.ply`` (the final map of the run; ``refined/map.ply`` for the map of
+  ``mipslam refine``, with its ``refined/traj_est.txt``). Every evaluated frame is rendered from its
   *estimated* pose ``T_wc`` (``traj_est.txt``, the map's own frame; no trajectory alignment is applied, since the map
   and the estimate share a frame), with the run's render config (backend, EAA constants, 3D filter) and the
   footprint mode of the table cell (``point | mip | ewa | eaa | exact``). No exposure compensation: the rendered
@@ -62,7 +63,7 @@ from mipslam.evaluation.image_metrics import depth_l1, psnr, resize_area, ssim
 from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry import se3_inverse
 from mipslam.io.ply import read_map_ply
-from mipslam.evaluation.run_files import read_run_config, read_run_json
+from mipslam.evaluation.run_files import read_run_config, read_run_json, relative_name, run_file
 from mipslam.io.run_folder import RunFolder
 from mipslam.io.tum import read_tum_trajectory
 from mipslam.render import MODES, RenderOutput
@@ -118,7 +119,9 @@ class RenderEvalOptions:
     ground_truth: "auto" (exact data_synth ground truth for ``dataset.kind = synthetic``, area resampling of the
     original images otherwise), "exact" or "resampled" (force one). showcase: also render one frame at
     ``showcase_scales`` (default: the evaluated scales when there are several, else
-    :data:`DEFAULT_SHOWCASE_SCALES`) in ``showcase_modes`` for the report's crop grid.
+    :data:`DEFAULT_SHOWCASE_SCALES`) in ``showcase_modes`` for the report's crop grid. max_frames: at most this
+    many frames of each evaluated set, evenly spaced (every k-th of the set's frames, k = ceil(count / max_frames));
+    None = no cap (``mipslam refine``'s progress records use 8).
     """
 
     frames: Literal["split", "all", "keyframes", "non_keyframes"] = "split"
@@ -131,6 +134,7 @@ class RenderEvalOptions:
     showcase: bool = True
     showcase_scales: tuple[float, ...] | None = None
     showcase_modes: tuple[str, ...] = DEFAULT_SHOWCASE_MODES
+    max_frames: int | None = None
 
     def __post_init__(self):
         if self.frames not in FRAME_SETS:
@@ -140,6 +144,9 @@ class RenderEvalOptions:
                               f"{', '.join(RESOLUTIONS)}")
         if self.every is not None and (isinstance(self.every, bool) or int(self.every) != self.every or self.every < 1):
             raise ConfigError(f"render evaluation: 'every' must be a whole number >= 1, got {self.every!r}")
+        if self.max_frames is not None and (isinstance(self.max_frames, bool) or int(self.max_frames) != self.max_frames
+                                            or self.max_frames < 1):
+            raise ConfigError(f"render evaluation: 'max_frames' must be a whole number >= 1, got {self.max_frames!r}")
         if not self.scales or not all(isinstance(s, (int, float)) and math.isfinite(s) and s > 0 for s in self.scales):
             raise ConfigError(f"render evaluation: scales must be positive numbers, got {self.scales!r}")
         for mode in (*self.modes, *self.showcase_modes):
@@ -392,6 +399,8 @@ class RunRenderContext:
     sequence_root: Path
     _ground_truth: dict[tuple[str, str], GroundTruth] = field(default_factory=dict)
     _full_sequence: Any = None  # the run's dataset read with downscale 1
+    map_file: str = "map.ply"  # what ``gaussians`` and ``T_wc_est`` were read from, relative to the run folder
+    trajectory_file: str = "traj_est.txt"
 
     def full_sequence(self):
         """The run's dataset read with ``downscale = 1`` (the camera's own images); DatasetError when it is gone."""
@@ -432,29 +441,37 @@ class RunRenderContext:
         return AreaResampledGroundTruth(full, self.config.dataset.downscale, self.intrinsics, resolution)
 
 
-def load_render_context(run_dir: str | Path, *, device: torch.device | str = "cpu") -> RunRenderContext:
-    """Read config.yaml, run.json, frames.json, traj_est.txt and map.ply of a run folder."""
+def load_render_context(run_dir: str | Path, *, device: torch.device | str = "cpu", map_ply: str | Path | None = None,
+                        traj_est: str | Path | None = None) -> RunRenderContext:
+    """Read config.yaml, run.json, frames.json, traj_est.txt and map.ply of a run folder.
+
+    ``map_ply`` / ``traj_est``: render another map from other poses of the same frames instead of the run's own
+    (e.g. ``refined/map.ply`` and ``refined/traj_est.txt`` of ``mipslam refine``; relative paths are relative to
+    the run folder); None = the run's own file."""
     folder = RunFolder(run_dir)
     config = read_run_config(folder)
     info = read_run_json(folder.root / "run.json")
     records = read_run_json(folder.root / "frames.json").get("frames", [])
     frames = [FrameInfo(k, int(r["index"]), float(r["timestamp"]), int(r["keyframe_id"])) for k, r in enumerate(records)]
-    est = read_tum_trajectory(folder.traj_est)
+    map_path = run_file(folder, map_ply, folder.map_ply)
+    traj_path = run_file(folder, traj_est, folder.traj_est)
+    est = read_tum_trajectory(traj_path)
     if len(est) != len(frames):
-        raise EvaluationError(f"{folder.traj_est}: {len(est)} poses but frames.json lists {len(frames)} frames; "
+        raise EvaluationError(f"{traj_path}: {len(est)} poses but frames.json lists {len(frames)} frames; "
                               "the run folder is inconsistent (rerun or resume the run)")
     for frame, stamp in zip(frames, est.timestamps):
         if abs(frame.timestamp - float(stamp)) > 1e-4 * max(1.0, abs(frame.timestamp)):
-            raise EvaluationError(f"{folder.traj_est}: pose at t={stamp} does not match frames.json frame "
+            raise EvaluationError(f"{traj_path}: pose at t={stamp} does not match frames.json frame "
                                   f"{frame.index} (t={frame.timestamp}); the run folder is inconsistent")
     k = info["dataset"]["intrinsics"]
     intrinsics = Intrinsics(fx=float(k["fx"]), fy=float(k["fy"]), cx=float(k["cx"]), cy=float(k["cy"]),
                             width=int(k["width"]), height=int(k["height"]))
-    gaussian_map = read_map_ply(folder.map_ply, device=device)
+    gaussian_map = read_map_ply(map_path, device=device)
     with torch.no_grad():
         gaussians = gaussian_map.activated().detached()
     return RunRenderContext(folder.root, config, info, intrinsics, gaussians, frames,
-                            torch.from_numpy(np.array(est.T_wc)), Path(info["dataset"]["root"]))
+                            torch.from_numpy(np.array(est.T_wc)), Path(info["dataset"]["root"]),
+                            map_file=relative_name(folder, map_path), trajectory_file=relative_name(folder, traj_path))
 
 
 def select_frames(frames: Sequence[FrameInfo], which: str, every: int) -> list[FrameInfo]:
@@ -500,10 +517,30 @@ def _automatic_rule() -> str:
             f"{AUTO_FRAME_LIMIT_MULTI} for several")
 
 
-def frame_selections(frames: Sequence[FrameInfo], which: str, every: int | None, cells: int
-                     ) -> tuple[FrameSelection, ...]:
+def frame_selections(frames: Sequence[FrameInfo], which: str, every: int | None, cells: int,
+                     max_frames: int | None = None) -> tuple[FrameSelection, ...]:
     """The evaluated sets of ``which`` (module docstring): ``split`` -> (novel, training), else the one set.
-    ``every`` None = the default step; ``cells`` = (scale, mode) cells of the table, for the automatic step."""
+    ``every`` None = the default step; ``cells`` = (scale, mode) cells of the table, for the automatic step;
+    ``max_frames``: then at most that many frames of each set, every k-th (:func:`capped_selection`)."""
+    selections = _frame_selections(frames, which, every, cells)
+    return selections if max_frames is None else tuple(capped_selection(s, max_frames) for s in selections)
+
+
+def capped_selection(selection: FrameSelection, max_frames: int) -> FrameSelection:
+    """``selection`` with at most ``max_frames`` of its frames: every k-th, k = ceil(count / max_frames), the first
+    included (a fixed subset: the same frames every time)."""
+    count = len(selection.frames)
+    if count <= max_frames:
+        return selection
+    k = math.ceil(count / max_frames)
+    # novel views: ``every`` is the step of frames.json positions, which the cap does not multiply
+    every = selection.every if selection.views == "novel" else selection.every * k
+    return replace(selection, frames=selection.frames[::k], every=every,
+                   every_rule=f"{selection.every_rule}; then every {k}-th of those, at most {max_frames} frames")
+
+
+def _frame_selections(frames: Sequence[FrameInfo], which: str, every: int | None, cells: int
+                      ) -> tuple[FrameSelection, ...]:
     if which == "split":
         step = every or NOVEL_EVERY
         keyframes = select_frames(frames, "keyframes", 1)
@@ -575,7 +612,7 @@ def evaluate_render(run: str | Path | RunRenderContext, options: RenderEvalOptio
     modes = tuple(options.modes) or (context.config.render.mode,)
     scales = tuple(float(s) for s in options.scales)
     cells = [(s, m) for s in scales for m in modes]
-    selections = frame_selections(context.frames, options.frames, options.every, len(cells))
+    selections = frame_selections(context.frames, options.frames, options.every, len(cells), options.max_frames)
     evaluated = [s for s in selections if s.frames]
     if not evaluated:
         raise EvaluationError(f"{context.run_dir}: the frame set '{options.frames}' is empty "
@@ -661,8 +698,9 @@ def _protocol(context: RunRenderContext, options: RenderEvalOptions, modes, scal
     reference = context.reference_intrinsics(options.resolution)
     evaluated = sorted({f.position: f for s in selections for f in s.frames}.values(), key=lambda f: f.position)
     return {
-        "map": {"file": "map.ply", "gaussians": int(context.gaussians.means.shape[0])},
-        "pose": "estimated T_wc of each frame (traj_est.txt, the map's frame); no alignment; the map is rendered from it",
+        "map": {"file": context.map_file, "gaussians": int(context.gaussians.means.shape[0])},
+        "pose": f"estimated T_wc of each frame ({context.trajectory_file}, the map's frame); no alignment; the map is "
+                "rendered from it",
         "exposure": "no exposure compensation: the rendered colour is compared as it is (no per-frame exposure or "
                     "colour correction, neither the one tracking fits nor one fitted to the ground truth)",
         "frames": {

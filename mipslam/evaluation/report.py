@@ -14,9 +14,14 @@ metrics it just computed:
 * ``crops.png``        one frame at each scale, the same detailed region cut out, ground truth next to point / mip /
   eaa (nearest-neighbour display, so aliasing stays visible), with the full-image PSNR of each render;
 * ``report.html``      the headline numbers (the novel-view row at scale 1 first, when there is one), the render
-  table (one group of rows per evaluated view set) and the protocol in words, linking the images.
+  table (one group of rows per evaluated view set) and the protocol in words, linking the images;
+* ``refinement_psnr.png``  where ``mipslam refine`` ran (``RUN_DIR/refined/``): novel- and training-view PSNR
+  against refinement time (``refined/progress.json``), in the page's "Refinement" section with the refined map's
+  metrics (``refined/metrics.json``) beside the SLAM map's.
 
-The page's main part is the run's own evaluation (``metrics.json``). An evaluation with other scales, modes or
+The page's main part is the run's own evaluation (``metrics.json``), followed by the Refinement section where
+there is one (:func:`write_report_page` rebuilds the page from the run folder's files alone, as ``mipslam refine``
+does). An evaluation with other scales, modes or
 options (``metrics_<label>.json``, :func:`mipslam.evaluation.run_eval.evaluation_label`) gets its own section below
 it, with its table and its ``psnr_vs_scale_<label>.png`` and ``crops_<label>.png``; the page lists a section for
 every ``metrics_*.json`` in the run folder.
@@ -47,8 +52,8 @@ from mipslam.io.tum import read_tum_trajectory
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ReportFiles", "loop_closures", "loop_text", "overlap_styles", "selection_text", "top_view_axes",
-           "write_report"]
+__all__ = ["ReportFiles", "loop_closures", "loop_text", "overlap_styles", "plot_refinement", "selection_text",
+           "top_view_axes", "write_report", "write_report_page"]
 
 MODE_COLORS = {"point": "#d62728", "mip": "#1f77b4", "ewa": "#9467bd", "eaa": "#2ca02c", "exact": "#7f7f7f"}
 STAGE_COLORS = ("#4c72b0", "#dd8452", "#55a868", "#c44e52", "#8172b3", "#937860", "#da8bc3", "#8c8c8c")
@@ -291,6 +296,33 @@ def plot_gaussians(path: Path, frame_indices: np.ndarray, counts: np.ndarray, ke
     return _save(figure, path)
 
 
+def plot_refinement(path: Path, records: list[dict]) -> Path:
+    """Novel- and training-view PSNR against refinement time (``refined/progress.json`` records), sessions
+    marked where a later one continued."""
+    figure = _figure(7.5, 3.8)
+    ax = figure.add_subplot()
+    seconds = np.asarray([r.get("seconds", 0.0) for r in records], dtype=np.float64)
+    in_minutes = len(seconds) and seconds.max() > 300.0
+    times = seconds / 60.0 if in_minutes else seconds
+    for views, colour, marker in (("novel", "#1f77b4", "o"), ("training", "#ff7f0e", "s")):
+        values = [r.get(f"{views}_psnr") for r in records]
+        kept = [(t, v) for t, v in zip(times, values) if v is not None]
+        if kept:
+            frames = max((r.get(f"{views}_frames", 0) for r in records), default=0)
+            ax.plot([t for t, _ in kept], [v for _, v in kept], "-", marker=marker, color=colour, ms=5,
+                    label=f"{views} views ({frames} frames)")
+    for k in range(1, len(records)):
+        if records[k].get("session") != records[k - 1].get("session"):
+            ax.axvline(times[k - 1], color="#888888", ls=":", lw=1)
+    ax.set_xlabel("refinement time [min]" if in_minutes else "refinement time [s]")
+    ax.set_ylabel("PSNR [dB] (native resolution)")
+    ax.grid(alpha=0.3)
+    steps = records[-1].get("steps", 0) if records else 0
+    ax.set_title(f"PSNR during the refinement ({steps} steps; dotted: a later session continued)", fontsize=10)
+    ax.legend(loc="best", fontsize=9)
+    return _save(figure, path)
+
+
 def _crop(image: np.ndarray, box: tuple[float, float, float, float]) -> np.ndarray:  # [h, w, 3]
     height, width = image.shape[:2]
     x0, x1 = int(math.floor(box[0] * width)), max(int(math.floor(box[0] * width)) + 1, int(math.ceil(box[2] * width)))
@@ -393,13 +425,59 @@ def write_report(run_dir: str | Path, metrics: dict, render_evaluation=None, *, 
     else:
         images = _section_plots(folder, metrics, render_evaluation, label)
         main = _read_json_or_none(run.metrics)
-        main_images = {name: folder / f"{name}.png" for name in MAIN_PLOTS if (folder / f"{name}.png").is_file()}
-    sections = _other_evaluations(run, label, metrics)
-    page = folder / "report.html"
-    text = _html(run, main, _read_json_or_none(run.timings), _read_json_or_none(run.loops), main_images, sections)
+        main_images = _existing_main_plots(folder)
+    page = _write_page(run, main, main_images, _other_evaluations(run, label, metrics))
+    return ReportFiles(folder, page, images)
+
+
+def write_report_page(run_dir: str | Path) -> ReportFiles:
+    """Rebuild ``report.html`` from the run folder's files without evaluating anything: the run's own
+    ``metrics.json`` with the plots already in ``report/``, every ``metrics_<label>.json`` section and the
+    Refinement section (its plot drawn again from ``refined/progress.json``). ``mipslam refine`` calls it."""
+    run = RunFolder(run_dir)
+    run.report.mkdir(parents=True, exist_ok=True)
+    page = _write_page(run, _read_json_or_none(run.metrics), _existing_main_plots(run.report),
+                       _other_evaluations(run, None, {}))
+    return ReportFiles(run.report, page, {})
+
+
+def _existing_main_plots(folder: Path) -> dict[str, Path]:
+    return {name: folder / f"{name}.png" for name in MAIN_PLOTS if (folder / f"{name}.png").is_file()}
+
+
+def _write_page(run: RunFolder, main: dict | None, main_images: dict[str, Path], sections: dict[str, dict]) -> Path:
+    page = run.report / "report.html"
+    refinement = _refinement_inputs(run)
+    text = _html(run, main, _read_json_or_none(run.timings), _read_json_or_none(run.loops), main_images, sections,
+                 refinement)
     write_text_atomic(page, text, error_type=EvaluationError)
     logger.info("report written to %s", page)
-    return ReportFiles(folder, page, images)
+    return page
+
+
+@dataclass(frozen=True)
+class _Refinement:
+    """What the report shows of ``RUN_DIR/refined/``."""
+
+    progress: dict | None
+    metrics: dict | None
+    plot: Path | None
+
+
+def _refinement_inputs(run: RunFolder) -> _Refinement | None:
+    """The refinement's progress and metrics, with its plot drawn into ``report/`` (None: never refined)."""
+    refined = run.refined
+    if not refined.root.is_dir():
+        return None
+    progress = _read_json_or_none(refined.progress)
+    metrics = _read_json_or_none(refined.metrics)
+    if progress is None and metrics is None:
+        return None
+    plot = None
+    records = (progress or {}).get("records") or []
+    if any(r.get("novel_psnr") is not None or r.get("training_psnr") is not None for r in records):
+        plot = plot_refinement(run.report / "refinement_psnr.png", records)
+    return _Refinement(progress, metrics, plot)
 
 
 MAIN_PLOTS = ("trajectory", "translation_error", "psnr_vs_scale", "crops", "timing", "gaussians")
@@ -559,7 +637,7 @@ def _protocol_items(metrics: dict) -> list[str]:
 
 
 def _html(run: RunFolder, main: dict | None, timings: dict | None, loops_data: Any, images: dict[str, Path],
-          sections: dict[str, dict]) -> str:
+          sections: dict[str, dict], refinement: _Refinement | None = None) -> str:
     esc = _esc
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>mipslam run report</title><style>",
@@ -574,6 +652,8 @@ def _html(run: RunFolder, main: dict | None, timings: dict | None, loops_data: A
         parts.append("<p>The run's own evaluation (metrics.json) is not there; 'mipslam eval RUN_DIR' writes it.</p>")
     else:
         parts.extend(_main_html(main, timings, loops_data, images))
+    if refinement is not None:
+        parts.extend(_refinement_html(run, refinement, main))
     for label, metrics in sections.items():
         parts.extend(_section_html(run, label, metrics))
     parts.append("</body></html>\n")
@@ -659,6 +739,60 @@ def _main_html(metrics: dict, timings: dict | None, loops_data: Any, images: dic
     if items:
         parts.append("<h2>Protocol</h2><ul>" + "".join(f"<li>{esc(item)}</li>" for item in items) +
                      "<li>The complete record is in metrics.json.</li></ul>")
+    return parts
+
+
+def _headline_row(metrics: dict | None, views: str) -> dict | None:
+    """The row of ``views`` nearest scale 1 in the run's mode of a metrics dict's render table."""
+    render = (metrics or {}).get("render")
+    rows = [r for r in (render or {}).get("rows", []) if r.get("views") == views] if isinstance(render, dict) else []
+    if not rows:
+        return None
+    run_mode = render.get("protocol", {}).get("renderer", {}).get("run_mode", rows[0]["mode"])
+    return min(rows, key=lambda r: (abs(math.log(r["scale"])), r["mode"] != run_mode))
+
+
+def _refinement_html(run: RunFolder, refinement: _Refinement, main: dict | None) -> list[str]:
+    """The Refinement section: what ran, the SLAM map against the refined one, the refined table, the plot."""
+    esc = _esc
+    progress, metrics = refinement.progress or {}, refinement.metrics
+    sessions = progress.get("sessions") or []
+    parts = ["<h2 id='refinement'>Refinement (refined/)</h2>"]
+    if progress:
+        size = progress.get("image_size") or []
+        poses = (metrics or {}).get("refinement", {}).get("poses_refined")
+        parts.append(f"<p>mipslam refine: {progress.get('steps', 0)} steps, {progress.get('seconds', 0.0):.1f} s of "
+                     f"refinement in {len(sessions)} session(s), over {progress.get('keyframes', '?')} keyframes at "
+                     f"{esc(progress.get('resolution', '?'))} resolution "
+                     f"{esc('x'.join(map(str, size)))}{'; keyframe poses refined' if poses else ''}. The refined map "
+                     "is refined/map.ply (the run's map.ply is unchanged).</p>")
+    if metrics is None:
+        parts.append(f"<p>The refined map is not evaluated (no refined/metrics.json): 'mipslam refine {esc(run.root)}' "
+                     "evaluates it at the end of a session ('--iterations 0': without refining further).</p>")
+    else:
+        steps = metrics.get("refinement", {}).get("steps")
+        parts.append("<table><tr><th>views</th><th>size</th><th>PSNR [dB] SLAM map</th><th>refined</th>"
+                     "<th>SSIM SLAM map</th><th>refined</th><th>LPIPS SLAM map</th><th>refined</th><th>frames</th></tr>")
+        for views in ("novel", "training", "all", "keyframes", "non_keyframes"):
+            after = _headline_row(metrics, views)
+            if after is None:
+                continue
+            before = _headline_row(main, views) or {}
+            parts.append(f"<tr><td class='l'>{esc(_VIEWS_TEXT.get(views, views))}</td>"
+                         f"<td>{after['width']}x{after['height']}</td><td>{_fmt(before.get('psnr'), '.2f')}</td>"
+                         f"<td>{_fmt(after.get('psnr'), '.2f')}</td><td>{_fmt(before.get('ssim'), '.4f')}</td>"
+                         f"<td>{_fmt(after.get('ssim'), '.4f')}</td><td>{_fmt(before.get('lpips'), '.4f')}</td>"
+                         f"<td>{_fmt(after.get('lpips'), '.4f')}</td><td>{after['frames']}</td></tr>")
+        parts.append("</table>")
+        parts.append(f"<p>The refined map after step {esc(steps)}, evaluated with the run's own protocol "
+                     f"(refined/metrics.json); ATE RMSE of its poses {esc(_ate_text(metrics.get('trajectory', {})))}."
+                     "</p>")
+        render = metrics.get("render") if isinstance(metrics.get("render"), dict) else None
+        if render and render.get("rows"):
+            parts.extend(_render_table(render["rows"]))
+    if refinement.plot is not None:
+        caption = "PSNR against refinement time (a fixed subset of frames, native resolution)"
+        parts.append(f"<h3>{esc(caption)}</h3><img src='{esc(refinement.plot.name)}' alt='{esc(caption)}'>")
     return parts
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from mipslam.errors import DatasetError, EvaluationError
 from mipslam.evaluation.trajectory import evaluate_trajectory
-from mipslam.evaluation.run_files import read_run_config, read_run_json
+from mipslam.evaluation.run_files import read_run_config, read_run_json, relative_name, run_file
 from mipslam.io.run_folder import RunFolder
 from mipslam.io.tum import read_tum_trajectory
 
@@ -76,18 +76,20 @@ def evaluation_label(config, *, alignment: str | None = None, association: str |
     return "_".join(parts) or None
 
 
-def map_size(path: Path) -> dict:
-    """The final map's size: Gaussian count (the PLY header's vertex count) and file size in MB (10^6 bytes)."""
+def map_size(path: Path, name: str | None = None) -> dict:
+    """The final map's size: Gaussian count (the PLY header's vertex count) and file size in MB (10^6 bytes);
+    ``name``: how to name the file (default its file name)."""
     from mipslam.io.ply import ply_vertex_count
 
+    name = name or path.name
     if not path.is_file():
-        return {"file": path.name, "unavailable": f"{path} is missing"}
-    return {"file": path.name, "gaussians": ply_vertex_count(path), "ply_mb": round(path.stat().st_size / 1e6, 3)}
+        return {"file": name, "unavailable": f"{path} is missing"}
+    return {"file": name, "gaussians": ply_vertex_count(path), "ply_mb": round(path.stat().st_size / 1e6, 3)}
 
 
 def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, association: str | None = None,
                  max_diff: float | None = None, render: bool = True, render_options=None,
-                 report: bool = True) -> dict:
+                 report: bool = True, map_ply: str | Path | None = None, traj_est: str | Path | None = None) -> dict:
     """Metrics of a run folder (the dict for ``metrics.json``).
 
     render: also compute render metrics (``render_options``: a
@@ -95,6 +97,12 @@ def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, associati
     frames, resolution, scales, modes). When the dataset folder is gone the render section says why it is
     unavailable and the trajectory metrics are still returned. report: write ``RUN_DIR/report/`` (the run's own
     evaluation as the page's main part, any other as its own section; see the module docstring).
+
+    ``map_ply`` / ``traj_est``: evaluate another map and trajectory of the run's frames than its own ``map.ply``
+    and ``traj_est.txt`` (``mipslam refine``'s ``refined/map.ply`` and ``refined/traj_est.txt``; relative to the run
+    folder), with the same protocol; the dict's ``"evaluation"`` names them. Such an evaluation belongs to its
+    caller: it writes no report (``mipslam refine`` rebuilds the page with its own section) and names no metrics
+    file (``metrics_file`` None).
 
     The dict's ``"evaluation"`` entry names the request (``label``: None for the run's own evaluation) and the
     file it belongs in (``metrics_file``: :func:`metrics_file_name`).
@@ -106,8 +114,11 @@ def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, associati
         raise EvaluationError(f"{folder.traj_gt}: no ground truth for this run's sequence; nothing to compare with")
     frames = read_run_json(folder.root / "frames.json")
     by_index = info["dataset"]["timestamp_kind"] == "index"
+    own_files = map_ply is None and traj_est is None
+    map_path = run_file(folder, map_ply, folder.map_ply)
+    traj_path = run_file(folder, traj_est, folder.traj_est)
     gt = read_tum_trajectory(folder.traj_gt, allow_duplicate_timestamps=True)
-    est = read_tum_trajectory(folder.traj_est)
+    est = read_tum_trajectory(traj_path)
     options = dict(association=association or "timestamp",
                    max_diff=max_diff if max_diff is not None else (0.5 if by_index else config.eval.association_tolerance_s))
     requested = alignment or config.eval.alignment
@@ -128,16 +139,25 @@ def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, associati
     flagged = frames["flagged"]
     label = evaluation_label(config, alignment=alignment, association=association, max_diff=max_diff, render=render,
                              render_options=render_options)
+    if own_files:
+        evaluation_entry = {"label": label, "metrics_file": metrics_file_name(label),
+                            "meaning": "the run's own evaluation (its eval config)" if label is None else
+                                       "a request other than the run's eval config; metrics.json keeps the run's own"}
+    else:
+        evaluation_entry = {"label": label, "metrics_file": None,
+                            "map": relative_name(folder, map_path), "trajectory": relative_name(folder, traj_path),
+                            "meaning": f"{relative_name(folder, map_path)} rendered from "
+                                       f"{relative_name(folder, traj_path)} "
+                                       + ("with the run's own protocol (its eval config)" if label is None else
+                                          "with a request other than the run's eval config")}
     metrics = {
         "run_dir": str(folder.root),
-        "evaluation": {"label": label, "metrics_file": metrics_file_name(label),
-                       "meaning": "the run's own evaluation (its eval config)" if label is None else
-                                  "a request other than the run's eval config; metrics.json keeps the run's own"},
+        "evaluation": evaluation_entry,
         "dataset": info["dataset"],
         "frames_processed": info["frames_processed"],
         "keyframes": info["keyframes"],
         "gaussians": info["gaussians"],
-        "map": map_size(folder.map_ply),
+        "map": map_size(map_path, relative_name(folder, map_path)),
         "tracking_failures": {"count": len(flagged), "frames": flagged,
                               "note": "flagged frames keep their motion-model pose and are included in the ATE"},
         "trajectory": trajectory,
@@ -152,18 +172,20 @@ def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, associati
             metrics["loop_edges"] = accuracy
     evaluation = None
     if render:
-        from mipslam.evaluation.render_eval import RenderEvalOptions, evaluate_render
+        from mipslam.evaluation.render_eval import RenderEvalOptions, evaluate_render, load_render_context
 
         if render_options is None:
             render_options = RenderEvalOptions(frames=config.eval.frames, resolution=config.eval.resolution,
                                                scales=tuple(config.eval.scales), modes=tuple(config.eval.modes))
         try:
-            evaluation = evaluate_render(folder.root, render_options)
+            source = folder.root if own_files else load_render_context(folder.root, map_ply=map_ply,
+                                                                            traj_est=traj_est)
+            evaluation = evaluate_render(source, render_options)
             metrics["render"] = evaluation.to_dict()
         except DatasetError as exc:
             logger.warning("render metrics unavailable: %s", exc)
             metrics["render"] = {"unavailable": f"the run's dataset cannot be read ({exc}); render metrics need it"}
-    if report:
+    if report and own_files:
         from mipslam.evaluation.report import write_report
 
         written = write_report(folder.root, metrics, evaluation, label=label)

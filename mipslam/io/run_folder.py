@@ -14,6 +14,7 @@ Layout (DESIGN.md, "Outputs of a run")::
     RUN/run.json         what the evaluation needs to know about the run (sequence, intrinsics)
     RUN/frames.json      per-frame records
     RUN/report/          plots
+    RUN/refined/         ``mipslam refine``'s map, poses, progress, evaluation and checkpoints (:class:`RefinedFolder`)
 
 A new run goes only into a folder that does not exist or is empty (:func:`prepare_new_run_folder`):
 a folder holding a run is continued (``--resume``) or, when asked (``--overwrite``), emptied of the
@@ -171,6 +172,7 @@ class RunFolder:
 
     CHECKPOINTS = "checkpoints"
     REPORT = "report"
+    REFINED = "refined"
 
     def __init__(self, path: str | Path):
         self.root = Path(path)
@@ -218,6 +220,10 @@ class RunFolder:
     @property
     def report(self) -> Path:
         return self.root / self.REPORT
+
+    @property
+    def refined(self) -> "RefinedFolder":
+        return RefinedFolder(self.root / self.REFINED)
 
     # --------------------------------------------------------------------------- creation
     def create(self) -> "RunFolder":
@@ -274,7 +280,9 @@ class RunFolder:
         Checkpoints go first, so an interrupted removal never leaves a resumable state beside
         outputs of another session. MipslamError naming the entry when one cannot be removed.
         """
-        order = [self.checkpoints, *(self.root / name for name in sorted(RUN_OUTPUTS)), self.report, self.config_yaml]
+        # a refinement first: without the run it refined it means nothing
+        order = [self.root / self.REFINED, self.checkpoints, *(self.root / name for name in sorted(RUN_OUTPUTS)),
+                 self.report, self.config_yaml]
         order += [p for p in self.root.iterdir() if _is_temporary(p.name)] if self.root.is_dir() else []
         for path in order:
             try:
@@ -336,6 +344,8 @@ def _written_by_a_run(path: Path) -> bool:
     name = path.name
     if _is_temporary(name):
         return True
+    if name == RunFolder.REFINED and not path.is_symlink():
+        return path.is_dir() and not RefinedFolder(path).foreign()
     if name not in RUN_ENTRIES or path.is_symlink():
         return False
     if name == RunFolder.CHECKPOINTS:
@@ -406,3 +416,105 @@ def prepare_new_run_folder(path: str | Path, *, overwrite: bool = False) -> bool
     if contents.holds_run:
         logger.warning("--overwrite: removed the earlier run in %s", folder.root)
     return True
+
+
+class RefinedFolder:
+    """``RUN/refined/``: what ``mipslam refine`` writes beside a run's own files (:mod:`mipslam.refine_run`)::
+
+        refined/map.ply        the refined map (3DGS PLY layout)
+        refined/traj_est.txt   every frame's pose (the run's own unless keyframe poses were refined)
+        refined/keyframes.txt  the keyframes' poses
+        refined/progress.json  one record per evaluation during the refinement
+        refined/metrics.json   the refined map evaluated with the run's own protocol
+        refined/checkpoints/   resume state (mipslam.checkpoint)
+    """
+
+    FILES = ("map.ply", "traj_est.txt", "keyframes.txt", "progress.json", "metrics.json")
+    CHECKPOINTS = "checkpoints"
+
+    def __init__(self, path: str | Path):
+        self.root = Path(path)
+
+    def __repr__(self) -> str:
+        return f"RefinedFolder({str(self.root)!r})"
+
+    @property
+    def map_ply(self) -> Path:
+        return self.root / "map.ply"
+
+    @property
+    def traj_est(self) -> Path:
+        return self.root / "traj_est.txt"
+
+    @property
+    def keyframes(self) -> Path:
+        return self.root / "keyframes.txt"
+
+    @property
+    def progress(self) -> Path:
+        return self.root / "progress.json"
+
+    @property
+    def metrics(self) -> Path:
+        return self.root / "metrics.json"
+
+    @property
+    def checkpoints(self) -> Path:
+        return self.root / self.CHECKPOINTS
+
+    def create(self) -> "RefinedFolder":
+        """Create the folder and its ``checkpoints/``; MipslamError naming the folder when that fails."""
+        if self.root.exists() and not self.root.is_dir():
+            raise MipslamError(f"{self.root}: exists and is not a folder; move it away (mipslam refine writes its "
+                               "outputs there)")
+        for folder in (self.root, self.checkpoints):
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise MipslamError(f"{folder}: cannot create it ({exc.strerror or exc}); fix the run folder's "
+                                   "permissions") from exc
+        return self
+
+    def foreign(self) -> tuple[str, ...]:
+        """Entries (relative to the folder) that ``mipslam refine`` does not write."""
+        if not self.root.is_dir():
+            return ()
+        found = []
+        for path in sorted(self.root.iterdir()):
+            if _is_temporary(path.name) or (path.name in self.FILES and path.is_file() and not path.is_symlink()):
+                continue
+            if path.name == self.CHECKPOINTS and path.is_dir() and not path.is_symlink():
+                found += [f"{self.CHECKPOINTS}/{p.name}" for p in sorted(path.iterdir())
+                          if not (p.is_file() and (_CHECKPOINT_FILE.match(p.name) or _is_temporary(p.name)))]
+                continue
+            found.append(path.name)
+        return tuple(found)
+
+    def remove(self) -> None:
+        """Delete the folder, which must hold only what ``mipslam refine`` writes (MipslamError naming the other
+        entries otherwise, and nothing is deleted). Checkpoints go first: an interrupted removal never leaves a
+        resumable state beside outputs of another refinement."""
+        if not self.root.exists():
+            return
+        foreign = self.foreign()
+        if foreign or not self.root.is_dir() or self.root.is_symlink():
+            shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+            raise MipslamError(f"{self.root}: holds files mipslam refine did not write ({shown or 'not a folder'}); "
+                               "move them away first")
+        try:
+            if self.checkpoints.is_dir():
+                shutil.rmtree(self.checkpoints)
+            shutil.rmtree(self.root)
+        except OSError as exc:
+            raise MipslamError(f"{self.root}: cannot remove it ({exc.strerror or exc}); remove it by hand") from exc
+
+    def remove_stale_temporaries(self) -> list[Path]:
+        """Delete temporary files a killed ``mipslam refine`` left behind; returns them."""
+        removed = []
+        for folder in (self.root, self.checkpoints):
+            if folder.is_dir():
+                for tmp in folder.glob(f".*{TEMP_SUFFIX}"):
+                    with contextlib.suppress(FileNotFoundError):
+                        tmp.unlink()
+                        removed.append(tmp)
+        return removed

@@ -1,4 +1,5 @@
-"""``mipslam view RUN_DIR``: serve a finished run folder in the browser.
+"""``mipslam view RUN_DIR``: serve a finished run folder in the browser (its refined map, ``refined/map.ply`` of
+``mipslam refine``, where there is one, unless the SLAM map is asked for).
 
 The page opens at the first frame; a slider picks any processed frame, whose image (read again
 from the run's dataset when that is still where the run found it) is shown beside the map
@@ -49,8 +50,10 @@ def render_panel(gaussians, T_wc: np.ndarray, intrinsics: Intrinsics, render_con
 class RecordedViewer:
     """A run folder served by a :class:`ViewerServer`, with a frame slider."""
 
-    def __init__(self, run_dir: str | Path, options: ViewerOptions = ViewerOptions(follow=False)):
-        self.run: RecordedRun = snapshot_from_run_dir(run_dir)
+    def __init__(self, run_dir: str | Path, options: ViewerOptions = ViewerOptions(follow=False), *,
+                 refined: bool = True):
+        """``refined``: show the map of ``mipslam refine`` (``refined/map.ply``, its poses) where there is one."""
+        self.run: RecordedRun = snapshot_from_run_dir(run_dir, refined=refined)
         self._sequence, self._sequence_index = self._open_sequence()
         self._gaussians = None
         self._render_lock = threading.Lock()
@@ -66,6 +69,10 @@ class RecordedViewer:
     @property
     def url(self) -> str:
         return self.server.url
+
+    def describe_map(self) -> str:
+        """Which map is shown (the SLAM map or the refined one), in words."""
+        return self.run.describe_map()
 
     def close(self) -> None:
         self.server.close()
@@ -121,7 +128,7 @@ class RecordedViewer:
             if self._gaussians is None:
                 from mipslam.io.ply import read_map_ply
 
-                self._gaussians = read_map_ply(self.run.run_dir / "map.ply").activated().detached()
+                self._gaussians = read_map_ply(self.run.map_file or self.run.run_dir / "map.ply").activated().detached()
             rendered = render_panel(self._gaussians, self.run.snapshot.est_T_wc[position], panel_intrinsics(intrinsics),
                                     self.run.config.render)
         return {"frame_image": frame_image, "rendered_image": rendered}

@@ -169,12 +169,25 @@ class RecordedRun:
     snapshot: SceneSnapshot
     est_timestamps: np.ndarray
     config: object | None
+    map_file: Path | None = None  # the map shown: RUN/map.ply, or RUN/refined/map.ply of mipslam refine
+    refined: bool = False  # the map (and poses) of mipslam refine
+
+    def describe_map(self) -> str:
+        """Which map is shown, in words (the viewer's log line)."""
+        if self.refined:
+            return (f"the refined map {self.map_file} (mipslam refine) with its poses; --slam-map shows the SLAM "
+                    "map instead")
+        if (self.run_dir / "refined" / "map.ply").is_file():
+            return f"the SLAM map {self.map_file} (--slam-map; without it the refined map is shown)"
+        return f"the SLAM map {self.map_file}"
 
 
-def snapshot_from_run_dir(run_dir: str | Path) -> RecordedRun:
+def snapshot_from_run_dir(run_dir: str | Path, *, refined: bool = True) -> RecordedRun:
     """Read a run folder written by ``mipslam run`` (map.ply, traj_est.txt, and where present
     traj_gt.txt, keyframes.txt, loops.json, run.json, metrics.json, frames.json, config.yaml).
 
+    ``refined``: where ``mipslam refine`` wrote ``refined/map.ply``, show that map with its poses and metrics
+    (``refined/traj_est.txt``, ``keyframes.txt``, ``metrics.json``) instead of the SLAM map's.
     A missing map or trajectory raises DatasetError naming the file; the optional files are skipped
     when absent.
     """
@@ -190,16 +203,22 @@ def snapshot_from_run_dir(run_dir: str | Path) -> RecordedRun:
     for name in ("map.ply", "traj_est.txt"):
         if not (root / name).is_file():
             raise DatasetError(root / name, "missing; is this a finished run folder? (a run writes it at its end)")
-    gaussian_map = read_map_ply(root / "map.ply")
+    shown = root / "refined" if refined and (root / "refined" / "map.ply").is_file() else root
+
+    def source(name: str) -> Path:
+        """The shown map's own file where it has one (refined/), else the run's."""
+        return shown / name if (shown / name).is_file() else root / name
+
+    gaussian_map = read_map_ply(shown / "map.ply")
     with torch.no_grad():
         activated = gaussian_map.activated()
         splats = Splats.from_activated(activated.means.numpy(), activated.quats.numpy(), activated.scales.numpy(),
                                        activated.colors.numpy(), activated.opacities.numpy())
-    est = read_tum_trajectory(root / "traj_est.txt")
+    est = read_tum_trajectory(source("traj_est.txt"))
     est_T_wc = np.asarray(est.T_wc, dtype=np.float64)
     keyframe_T_wc = np.zeros((0, 4, 4))
-    if (root / "keyframes.txt").is_file():
-        keyframe_T_wc = np.asarray(read_tum_trajectory(root / "keyframes.txt").T_wc, dtype=np.float64)
+    if source("keyframes.txt").is_file():
+        keyframe_T_wc = np.asarray(read_tum_trajectory(source("keyframes.txt")).T_wc, dtype=np.float64)
     gt_positions = None
     if (root / "traj_gt.txt").is_file():
         gt_positions = np.asarray(read_tum_trajectory(root / "traj_gt.txt", allow_duplicate_timestamps=True).positions,
@@ -216,7 +235,7 @@ def snapshot_from_run_dir(run_dir: str | Path) -> RecordedRun:
     if camera:
         intrinsics = Intrinsics(fx=camera["fx"], fy=camera["fy"], cx=camera["cx"], cy=camera["cy"],
                                 width=int(camera["width"]), height=int(camera["height"]))
-    metrics = _read_json(root / "metrics.json") or {}
+    metrics = _read_json(source("metrics.json")) or {}
     ate = (metrics.get("trajectory") or {}).get("ate") or {}
     timings = _read_json(root / "timings.json") or {}
     headline = Headline(frame=len(est), total_frames=int(info.get("dataset", {}).get("frames", len(est))),
@@ -233,7 +252,8 @@ def snapshot_from_run_dir(run_dir: str | Path) -> RecordedRun:
     snapshot = SceneSnapshot(splats=splats, est_T_wc=est_T_wc, keyframe_T_wc=keyframe_T_wc, headline=headline,
                              gt_positions=gt_positions, loop_edges=loop_edges, current=len(est) - 1,
                              intrinsics=intrinsics)
-    return RecordedRun(root, snapshot, np.asarray(est.timestamps, dtype=np.float64), config)
+    return RecordedRun(root, snapshot, np.asarray(est.timestamps, dtype=np.float64), config, shown / "map.ply",
+                       shown != root)
 
 
 def _read_json(path: Path) -> dict | None:
