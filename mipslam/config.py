@@ -444,8 +444,12 @@ class RefineConfig:
     ssim_weight: float = 0.2  # weight of 1 - SSIM (3D Gaussian Splatting's 0.2)
     isotropy_weight: float = 0.0  # metres; thin structures need elongated Gaussians
     lr_poses: float = 0.0  # Adam rate of the keyframe poses (m, rad); 0 keeps them fixed
+    # Gradient-driven densification (3D Gaussian Splatting's clone and split): a Gaussian whose mean view-space
+    # gradient (normalised device units; 3DGS's 2e-4) exceeds this is cloned or split every 100 steps; 0 = off
+    densify_grad: float = 0.0
 
     def __post_init__(self):
+        _check(self.densify_grad >= 0, "refine.densify_grad", "must be >= 0 (0 = off)")
         _check(0 <= self.alpha_color <= 1, "refine.alpha_color", "must be in [0, 1]")
         _check(self.ssim_weight >= 0, "refine.ssim_weight", "must be >= 0")
         _check(self.isotropy_weight >= 0, "refine.isotropy_weight", "must be >= 0")
