@@ -1,7 +1,7 @@
 """Vectorised ray casting of a :class:`~data_synth.scene.Scene` at any pose and intrinsics.
 
 Colour is the box-filtered pixel-footprint average: pixel (u, v) covers the unit square
-``[u-0.5, u+0.5] x [v-0.5, v+0.5]`` (DESIGN.md), which is split into ``S x S`` equal strata; one
+``[u-0.5, u+0.5] x [v-0.5, v+0.5]`` (docs/design.md), which is split into ``S x S`` equal strata; one
 ray through the centre of each stratum, ``(u - 0.5 + (i + 0.5) / S, v - 0.5 + (j + 0.5) / S)``,
 and the colour is the mean radiance of the ``S^2`` rays (a midpoint rule of the footprint
 integral, error -> 0 as S grows). Depth is exact: the camera-frame z of the surface hit by the

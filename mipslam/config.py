@@ -139,7 +139,7 @@ RENDER_OPTION_KEYS = {
 
 @dataclass(frozen=True)
 class RenderConfig:
-    """Renderer settings (DESIGN.md, renderer contract and EAA). The EAA constants and the near plane default
+    """Renderer settings (docs/design.md, renderer contract and EAA). The EAA constants and the near plane default
     to :class:`~mipslam.render.RenderOptions`' values (measured against `exact`: docs/renderer.md,
     `mipslam bench --scenario aliasing`), and are checked by its rules."""
 

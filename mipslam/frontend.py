@@ -21,7 +21,7 @@ a Gaussian map):
 The functions are pure (numpy / torch in, value objects out). :class:`Frontend` is the tracking stage's
 use of them: it caches each frame's features (recomputed on a miss, so a resumed run sees the same
 values), starts a frame from the previous tracked frame, and relocalises a lost frame against keyframes.
-Conventions (DESIGN.md): OpenCV camera, ``T_ab`` maps frame-b points into frame a, metres, pixels with
+Conventions (docs/design.md): OpenCV camera, ``T_ab`` maps frame-b points into frame a, metres, pixels with
 integer centres.
 """
 from __future__ import annotations

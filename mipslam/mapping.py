@@ -1,6 +1,6 @@
 """Mapping: grow, refine and prune the Gaussian map over a window of keyframes.
 
-On each keyframe (DESIGN.md "Losses" and "Model only what a scene requires"):
+On each keyframe (docs/design.md "Losses" and "Model only what a scene requires"):
 
 1. densify: render the map at the new keyframe; new Gaussians go only where the map does not
    explain it (rendered opacity below ``add_opacity_threshold`` or the map's surface far behind the

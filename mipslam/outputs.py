@@ -1,4 +1,4 @@
-"""Writes a run's outputs (DESIGN.md "Outputs of a run"): trajectories, keyframes, per-frame tracking
+"""Writes a run's outputs (docs/design.md "Outputs of a run"): trajectories, keyframes, per-frame tracking
 record, map, timings, loop closures and a description of the run. Every file is written atomically."""
 from __future__ import annotations
 

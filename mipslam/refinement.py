@@ -29,7 +29,7 @@ from mipslam.geometry.se3 import quat_wxyz_to_rotmat, se3_exp, se3_inverse
 from mipslam.losses.frequency import frequency_loss
 from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, rgbd_l1_loss, rgbd_masks
 from mipslam.losses.regularizers import isotropy_loss
-from mipslam.losses.structural import ssim
+from mipslam.losses.structural import SSIMTargetCache, ssim_loss
 from mipslam.render import RenderOutput
 from mipslam.rendering import frustum_indices, render_view
 from mipslam.types import Intrinsics
@@ -44,7 +44,7 @@ class RefineOptions:
     alpha_color      weight of the colour L1 against the depth L1 (mapping keeps depth strong for tracking)
     ssim_weight      weight of 1 - SSIM (3DGS: 0.2)
     isotropy_weight  weight of the isotropy regulariser (metres): thin structures need elongated Gaussians
-    lambda_freq      weight of the frequency-domain loss (mapping.lambda_freq; DESIGN "Losses"); freq_patch px,
+    lambda_freq      weight of the frequency-domain loss (mapping.lambda_freq; docs/design.md "Losses"); freq_patch px,
                      freq_alpha its focal exponent
     lr_poses         Adam rate of the keyframe poses (m, rad per step); 0 keeps them fixed
     max_depth        metres; observed depth beyond it leaves the depth term (0 = no limit)
@@ -128,6 +128,7 @@ class KeyframeRefiner:
         self.steps = 0
         self._pending: list[int] = []  # positions in self.keyframes still to visit in this pass
         self._images: OrderedDict[int, tuple[KeyframeImage, RGBDMasks]] = OrderedDict()
+        self._ssim_targets = SSIMTargetCache(max_entries=max(1, cache_size))  # the keyframes' blurred moments
         device, dtype = gmap.device, gmap.dtype
         optimise_poses = options.lr_poses > 0
         # left increments T_cw = exp(xi) T_cw0, xi [K, 6] = [rho m, phi rad] in the camera frame
@@ -211,7 +212,7 @@ class KeyframeRefiner:
         loss = rgbd_l1_loss(color, out.depth, image.color, image.depth, alpha_color=cfg.alpha_color,
                             masks=masks).total
         if cfg.ssim_weight > 0:
-            loss = loss + cfg.ssim_weight * (1.0 - ssim(color, image.color))
+            loss = loss + cfg.ssim_weight * ssim_loss(color, image.color, cache=self._ssim_targets)
         if cfg.lambda_freq > 0:
             loss = loss + cfg.lambda_freq * frequency_loss(color, image.color, patch_size=cfg.freq_patch,
                                                            alpha=cfg.freq_alpha, mask=masks.color)

@@ -1,4 +1,4 @@
-"""SLAMState: everything that changes during a run. It is the checkpoint (DESIGN.md "State").
+"""SLAMState: everything that changes during a run. It is the checkpoint (docs/design.md "State").
 
 Per processed frame a frozen :class:`FrameRecord`; the keyframes (id -> frame position), the
 window, the map with its optimizer state, the run's random generator, the running tracking loss,

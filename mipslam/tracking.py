@@ -2,7 +2,7 @@
 
 The pose is parametrised as a left increment in the camera frame,
 ``T_cw = exp(xi) T_cw_init`` with ``xi = [rho, phi]`` (se(3), translation first), and optimised with
-Adam or Rprop (``tracking.optimizer``) on the loss of DESIGN.md ("Losses", tracking):
+Adam or Rprop (``tracking.optimizer``) on the loss of docs/design.md ("Losses", tracking):
 ``alpha_c * mean(M_rgb |exposure(I) - I_gt|) + (1 - alpha_c) * mean(M_d |D - D_gt|)``,
 where the masks keep valid depth, rendered opacity >= ``opacity_threshold`` (pixels the map explains)
 and, for colour, pixels above an image-gradient percentile. Optional coarse-to-fine: the first

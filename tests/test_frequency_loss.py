@@ -1,4 +1,4 @@
-"""Local frequency-domain perceptual loss (mipslam.losses.frequency), against DESIGN.md's definition."""
+"""Local frequency-domain perceptual loss (mipslam.losses.frequency), against docs/design.md's definition."""
 from __future__ import annotations
 
 import math
@@ -18,7 +18,7 @@ def _images(height: int, width: int, channels: int = 3, seed: int = 0) -> tuple[
 
 
 def _reference_loss(rendered: np.ndarray, target: np.ndarray, patch: int, alpha: float, mask=None) -> float:
-    """Direct, loop-and-sum float64 implementation of DESIGN.md's formula (no FFT, no vectorised tiling)."""
+    """Direct, loop-and-sum float64 implementation of docs/design.md's formula (no FFT, no vectorised tiling)."""
     rendered = rendered.astype(np.float64)
     target = target.astype(np.float64)
     if mask is not None:

@@ -131,7 +131,7 @@ def test_refinement_lowers_the_training_view_loss(run_dir):
                 image = load(keyframe)
                 masks = rgbd_masks(image.color, image.depth, max_depth=config.mapping.max_depth)
                 T_cw = se3_inverse(keyframe.T_wc).to(torch.float32)
-                losses.append(float(refiner.loss(image, masks, T_cw, keyframe.exposure, None)))
+                losses.append(float(refiner.loss(image, masks, T_cw, keyframe.exposure, None)[0]))
         return sum(losses) / len(losses)
 
     before, after = mean_loss(run_dir / "map.ply"), mean_loss(run_dir / "refined" / "map.ply")

@@ -22,7 +22,7 @@ Protocol (the same as ``evo_ape tum GT EST -a --t_max_diff 0.02`` and ``evo_rpe 
    ground truth (evo_traj's ``path length``). Jitter and jumps (a loop correction's step) lengthen the
    estimate's path; ATE barely sees them when they are small.
 
-Poses are camera-to-world ``T_wc`` (DESIGN.md). Everything is float64 numpy.
+Poses are camera-to-world ``T_wc`` (docs/design.md). Everything is float64 numpy.
 """
 from __future__ import annotations
 

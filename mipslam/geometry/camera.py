@@ -1,6 +1,6 @@
 """Pinhole projection and back-projection (OpenCV camera frame: x right, y down, z forward).
 
-Pixel centres have integer coordinates (DESIGN.md), so pixel (u, v) views the ray through
+Pixel centres have integer coordinates (docs/design.md), so pixel (u, v) views the ray through
 ``((u - cx) / fx, (v - cy) / fy, 1)``.
 """
 from __future__ import annotations

@@ -19,7 +19,7 @@ image pyramids, each step accepted only when it lowers the cost at the current w
 ``MAX_HALVINGS`` times otherwise). The offset ``b`` absorbs a change of brightness between the views (auto
 exposure); it is re-estimated at every evaluation and treated as a constant in the Jacobian.
 
-Pixel centres have integer coordinates (DESIGN.md); images are sampled bilinearly at ``u'``.
+Pixel centres have integer coordinates (docs/design.md); images are sampled bilinearly at ``u'``.
 """
 from __future__ import annotations
 

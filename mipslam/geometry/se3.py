@@ -3,7 +3,7 @@
 Every function works on any leading batch shape ``[...]``, on any device and dtype, and is
 differentiable (small-angle branches use Taylor expansions, so gradients stay finite at 0).
 
-Conventions (DESIGN.md): a twist is ``xi = [rho, phi]`` (translation part first, then the
+Conventions (docs/design.md): a twist is ``xi = [rho, phi]`` (translation part first, then the
 rotation vector), ``T = exp(xi)`` is a 4x4 homogeneous matrix. Quaternions are ``wxyz`` here;
 files use TUM order ``xyzw`` and convert at the boundary with :func:`quat_xyzw_to_wxyz`.
 References: Barfoot, "State Estimation for Robotics" (2017), sections 7.1-7.2; Sola et al.,

@@ -1,6 +1,6 @@
 """One run's output folder and the atomic file writes every output goes through.
 
-Layout (DESIGN.md, "Outputs of a run")::
+Layout (docs/design.md, "Outputs of a run")::
 
     RUN/config.yaml      resolved config
     RUN/traj_est.txt     estimated trajectory, TUM format

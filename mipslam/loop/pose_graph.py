@@ -5,9 +5,9 @@ Representation (all torch float64 on the caller's device; the solver works on CP
 * node ``k``: a keyframe pose ``T_wc[k]`` (camera to world, 4x4);
 * edge ``(i, j)``: a measured relative pose ``Z_ij ~ T_i^-1 T_j`` (maps camera-j points into
   camera i), a 6x6 information matrix in the twist order ``[rho, phi]`` (translation first,
-  DESIGN.md), and a kind (odometry or loop).
+  docs/design.md), and a kind (odometry or loop).
 
-Residual (DESIGN.md): ``e_ij = Log(Z_ij^-1 T_i^-1 T_j)``, a twist ``[rho, phi]`` expressed in
+Residual (docs/design.md): ``e_ij = Log(Z_ij^-1 T_i^-1 T_j)``, a twist ``[rho, phi]`` expressed in
 camera j's frame. Poses are updated on the left (world frame), ``T_k <- Exp(delta_k) T_k``, so
 a correction is a world-frame twist per node. With ``E = Z_ij^-1 T_i^-1 T_j``:
 

@@ -1,4 +1,4 @@
-"""Losses of tracking and mapping (DESIGN.md, "Losses"): pure functions on tensors, any device.
+"""Losses of tracking and mapping (docs/design.md, "Losses"): pure functions on tensors, any device.
 
 - :mod:`mipslam.losses.photometric`: colour + depth L1 with masks and the affine exposure model.
 - :mod:`mipslam.losses.regularizers`: isotropy and scale-cap regularisers on activated scales.

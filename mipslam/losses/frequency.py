@@ -1,4 +1,4 @@
-"""Local frequency-domain perceptual loss (DESIGN.md, "Losses"; focal weighting after Jiang et al., ICCV 2021).
+"""Local frequency-domain perceptual loss (docs/design.md, "Losses"; focal weighting after Jiang et al., ICCV 2021).
 
 Definition (this project's contract):
 

@@ -1,4 +1,4 @@
-"""Photometric + depth L1 loss of tracking and mapping (DESIGN.md, "Losses").
+"""Photometric + depth L1 loss of tracking and mapping (docs/design.md, "Losses").
 
     L = alpha_c * mean_{p in M_rgb}(|exposure(I)(p) - I_gt(p)|) + (1 - alpha_c) * mean_{p in M_d}(|D(p) - D_gt(p)|)
 
@@ -442,7 +442,7 @@ def rgbd_l1_loss(
     depth_alpha_floor: float = DEFAULT_DEPTH_ALPHA_FLOOR,
     depth_outlier_ratio: float = 0.0,
 ) -> RGBDLoss:
-    """The tracking/mapping loss of DESIGN.md (formula in the module docstring).
+    """The tracking/mapping loss of docs/design.md (formula in the module docstring).
 
     Pass precomputed ``masks`` (e.g. the gradient mask once per frame, see :func:`rgbd_masks`), or let the
     function build them from ``alpha``/``opacity_threshold``/``gradient_percentile``. ``exposure`` (e.g.

@@ -1,4 +1,4 @@
-"""Regularisers of the mapping loss (DESIGN.md, "Losses": "plus an isotropy regulariser").
+"""Regularisers of the mapping loss (docs/design.md, "Losses": "plus an isotropy regulariser").
 
 All take the *activated* scales (standard deviations along the Gaussian's principal axes, metres), not the
 log-scales the optimiser holds, so their meaning does not depend on the parametrisation.

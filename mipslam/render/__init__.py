@@ -1,4 +1,4 @@
-"""Differentiable Gaussian rasterizer (DESIGN.md "Renderer contract"; docs/renderer.md).
+"""Differentiable Gaussian rasterizer (docs/design.md "Renderer contract"; docs/renderer.md).
 
     from mipslam.render import rasterize
     out = rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height,

@@ -1,4 +1,4 @@
-"""Front-to-back alpha compositing (DESIGN.md "Renderer contract"), pure functions on tensors.
+"""Front-to-back alpha compositing (docs/design.md "Renderer contract"), pure functions on tensors.
 
 Along the last axis the Gaussians are in depth order, nearest first. Per pixel:
 ``alpha_i = min(0.99, a_i)``; ``alpha_i = 0`` when ``a_i < 1/255`` (skipped); ``T_0 = 1``; Gaussian i

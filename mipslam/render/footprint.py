@@ -3,11 +3,11 @@
 Every function here is pure and elementwise with broadcasting: per-pair tensors have a shape
 ``[...]`` (for the rasterizer ``[tiles, pixels, gaussians]``); per-Gaussian tensors broadcast to it
 (``[tiles, 1, gaussians]``); pixel coordinates broadcast too (``[tiles, pixels, 1]``). Pixel (u, v)
-is the unit square ``[u-0.5, u+0.5] x [v-0.5, v+0.5]`` (DESIGN.md conventions). The 2D covariance is
+is the unit square ``[u-0.5, u+0.5] x [v-0.5, v+0.5]`` (docs/design.md conventions). The 2D covariance is
 passed as its three entries ``cov_xx, cov_xy, cov_yy`` (px^2) plus its determinant ``cov_det`` (px^4),
 which the projection computes without cancellation (Cauchy-Binet), so thin splats stay accurate.
 
-Modes (DESIGN.md "Renderer contract"; docs/renderer.md has the full EAA specification):
+Modes (docs/design.md "Renderer contract"; docs/renderer.md has the full EAA specification):
 
 * ``point``  3DGS: centre sample of the Gaussian dilated by 0.3 px^2 (peak opacity kept).
 * ``mip``    Mip-Splatting 2D filter: ``Sigma + 0.1 I``, opacity times ``sqrt(det Sigma / det(Sigma + 0.1 I))``.

@@ -70,6 +70,7 @@ SCENARIOS: dict[str, ScenarioInfo] = {info.name: info for info in (
     ScenarioInfo("render_speed", "cpu and torch renderer backends: forward/backward time, rate, peak memory"),
     ScenarioInfo("scaling", "renderer time against Gaussian and pixel count, PGO time against keyframe count",
                  needs_checkout=True),
+    ScenarioInfo("ssim_speed", "SSIM loss forward+backward: the torch reference against the compiled kernel"),
     ScenarioInfo("tracking_bias", "where tracking settles against a map fitted to one true view (coverage, "
                                   "depth bias, pose error)"),
 )}

@@ -20,6 +20,8 @@ backward. Modules, one job each:
     feature_match.h the feature front-end's guided matching, the twin of mipslam.frontend's k-d tree gate
     rgbd_loss.h     tracking's masked RGB-D L1 loss and its gradients, the twin of
                     mipslam.losses.photometric.rgbd_l1_loss_and_gradients
+    ssim_loss.h     mapping's SSIM loss term and its analytic gradient, the twin of mipslam.losses.structural.ssim
+                    (mipslam.losses.structural.ssim_loss calls it)
 
 Nothing here compiles: a missing or stale build logs one warning, :func:`is_available` is False,
 ``backend="auto"`` uses the torch backend and ``backend="cpu"`` raises

@@ -41,7 +41,7 @@ from pathlib import Path
 SOURCE_DIR = Path(__file__).resolve().parent
 SOURCES = ("raster_ext.cpp",)
 HEADERS = ("check.h", "direct_align.h", "feature_match.h", "footprint_simd.h", "simd_math.h", "projection.h",
-           "rgbd_loss.h")
+           "rgbd_loss.h", "ssim_loss.h")
 #: -O3, OpenMP, IEEE-exact maths (no -ffast-math: the kernels rely on NaN tests and the exp rounding trick).
 COMMON_FLAGS = ("-O3", "-std=c++17", "-fopenmp", "-fno-math-errno", "-fno-trapping-math", "-fPIC", "-shared",
                 "-fvisibility=hidden", "-fvisibility-inlines-hidden", "-Wno-psabi")

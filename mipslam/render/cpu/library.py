@@ -30,7 +30,7 @@ from mipslam.errors import BackendUnavailableError, RenderError
 log = logging.getLogger("mipslam.render.cpu")
 
 #: The C interface version this module speaks (mipslam_abi_version in raster_ext.cpp).
-ABI_VERSION = 6
+ABI_VERSION = 7
 _ERROR_BYTES = 2048
 _ERR_VALUE, _ERR_MEMORY = 1, 3
 REBUILD_HINT = "run ./scripts/setup or python -m mipslam.render.cpu.build"
@@ -54,6 +54,8 @@ _SIGNATURES = {
     "mipslam_direct_align": ([_i64] + [_p] * 7 + [_i64, _f64, _f64, _p, _i64, ctypes.c_int, _p, _p, _p, _i64],
                              ctypes.c_int),
     "mipslam_rgbd_l1": ([_p] * 7 + [_i64, _i64, _f64, _i64, _f64, _f64, _i64, _f64] + [_p] * 4, ctypes.c_int),
+    "mipslam_ssim": ([_p] * 3 + [_i64] * 3 + [_p, _i64, _f64, _f64, _f64, _i64, _p, _p, _p, _i64], ctypes.c_int),
+    "mipslam_ssim_moments": ([_p, _i64, _i64, _i64, _p, _i64, _i64, _p, _p, _i64], ctypes.c_int),
     "mipslam_guided_match": ([_p, _i64, _p, _p, _i64, _f64, _p, _p, _i64, _f64, _i64, _p, _p, _p, _i64], ctypes.c_int),
 }
 
@@ -266,6 +268,43 @@ class Library:
                    int(exposure is not None), float(gain), float(bias), int(depth_normalise),
                    float(depth_alpha_floor), _ptr(out), _ptr(counts), _ptr(grad_color), _ptr(grad_depth))
         return out, counts, grad_color, grad_depth
+
+    # --- SSIM (ssim_loss.h) --------------------------------------------------------------------------
+    @staticmethod
+    def _ssim_inputs(target: torch.Tensor, window: torch.Tensor) -> tuple[int, int, int]:
+        if target.dim() != 3:
+            raise RuntimeError(f"mipslam ssim: images must be [H, W, C], got {list(target.shape)}")
+        shape = tuple(target.shape)
+        _check(target, "target", torch.float32, shape)
+        _check(window, "window", torch.float32, (window.shape[0],))
+        return shape
+
+    def ssim(self, image: torch.Tensor, target: torch.Tensor, target_moments: torch.Tensor | None,
+             window: torch.Tensor, c1: float, c2: float, *, gradients: bool, grad_scale: float = 1.0,
+             threads: int = 1) -> tuple[float, torch.Tensor | None]:
+        """Mean SSIM of image and target [H, W, C] float32 with zero "same" padding, the separable window [taps]
+        float32 (odd taps, symmetric) and constants c1, c2; ``target_moments`` [2, H, W, C] from
+        :meth:`ssim_moments` with the same window, or None. -> (mean as a float, ``grad_scale`` times its gradient
+        with respect to the image [H, W, C], or None without ``gradients``)."""
+        shape = self._ssim_inputs(target, window)
+        _check(image, "image", torch.float32, shape)
+        if target_moments is not None:
+            _check(target_moments, "target_moments", torch.float32, (2, *shape))
+        grad = torch.empty(shape, dtype=torch.float32) if gradients else None
+        out = ctypes.c_double(0.0)
+        self._call(self._lib.mipslam_ssim, _ptr(image), _ptr(target), _ptr(target_moments), *shape, _ptr(window),
+                   window.shape[0], float(c1), float(c2), float(grad_scale), int(threads), ctypes.byref(out),
+                   _ptr(grad))
+        return out.value, grad
+
+    def ssim_moments(self, target: torch.Tensor, window: torch.Tensor, threads: int = 1) -> torch.Tensor:
+        """The target's SSIM moments [2, H, W, C] float32: the blurred target and its blurred square (zero padding,
+        the separable ``window`` [taps] float32), which :meth:`ssim` takes as ``target_moments``."""
+        shape = self._ssim_inputs(target, window)
+        moments = torch.empty((2, *shape), dtype=torch.float32)
+        self._call(self._lib.mipslam_ssim_moments, _ptr(target), *shape, _ptr(window), window.shape[0], int(threads),
+                   _ptr(moments))
+        return moments
 
     # --- tile rasterizer ------------------------------------------------------------------------------
     @staticmethod
@@ -513,10 +552,10 @@ class _TimedExtension:
         if not callable(attr):
             return attr
 
-        def timed(*args):
+        def timed(*args, **kwargs):
             start, start_cpu = time.perf_counter(), time.process_time()
             try:
-                return attr(*args)
+                return attr(*args, **kwargs)
             finally:
                 times = self._times
                 times.seconds[name] = times.seconds.get(name, 0.0) + time.perf_counter() - start

@@ -26,6 +26,7 @@
 #include "projection.h"
 #include "rgbd_loss.h"
 #include "simd_math.h"
+#include "ssim_loss.h"
 
 #ifdef _OPENMP
 #include <omp.h>
@@ -838,7 +839,7 @@ int guarded(char* err, int64_t err_len, F&& body) {
 #endif
 
 // Bumped whenever a signature below changes (library.py refuses a library of another version).
-MIPSLAM_API int mipslam_abi_version(void) { return 6; }
+MIPSLAM_API int mipslam_abi_version(void) { return 7; }
 
 // Hash of the sources and flags the library was built from (mipslam/render/cpu/build.py, source_hash), also
 // readable from the file without loading it (the marker).
@@ -1111,5 +1112,44 @@ MIPSLAM_API int mipslam_rgbd_l1(const float* color, const float* depth, const fl
                                          (float)gain, (float)bias, depth_normalise != 0 ? 1 : 0,
                                          (float)depth_alpha_floor};
         rgbd_loss::evaluate(images, options, out, counts, grad_color, grad_depth);
+    });
+}
+
+// SSIM of image and target [H, W, C] float32 with "same" (zero) padding (ssim_loss.h): window [taps] float32 (the
+// separable Gaussian's 1D factor: odd taps <= 31, symmetric), constants c1 and c2. The mean over pixels and channels
+// into out[0] (float64); with grad not null, grad_scale times its gradient with respect to the image into grad
+// [H, W, C]. target_moments [2, H, W, C] (the blurred target and its blurred square, from mipslam_ssim_moments with
+// the same window) or null (computed here).
+MIPSLAM_API int mipslam_ssim(const float* image, const float* target, const float* target_moments, int64_t height,
+                             int64_t width, int64_t channels, const float* window, int64_t taps, double c1, double c2,
+                             double grad_scale, int64_t threads, double* out, float* grad, char* err,
+                             int64_t err_len) {
+    using namespace mipslam_cpu;
+    return guarded(err, err_len, [&] {
+        MIPSLAM_CHECK(height >= 1 && width >= 1 && channels >= 1, "mipslam_ssim: bad sizes");
+        MIPSLAM_CHECK(taps >= 1 && taps <= ssim::MAX_TAPS && taps % 2 == 1, "mipslam_ssim: ", taps,
+                      " window taps, expected an odd count up to ", ssim::MAX_TAPS);
+        for (int64_t k = 0; k < taps / 2; ++k)
+            MIPSLAM_CHECK(window[k] == window[taps - 1 - k], "mipslam_ssim: the window is not symmetric");
+        const ssim::Geometry G(height, width, channels, window, (int)taps);
+        out[0] = ssim::evaluate(G, image, target, target_moments, ssim::Constants{(float)c1, (float)c2,
+                                (float)grad_scale}, std::max<int>(1, (int)threads), grad);
+    });
+}
+
+// The target's SSIM moments (ssim_loss.h) into moments [2, H, W, C] float32: the blurred target and its blurred
+// square, with mipslam_ssim's window and zero padding.
+MIPSLAM_API int mipslam_ssim_moments(const float* target, int64_t height, int64_t width, int64_t channels,
+                                     const float* window, int64_t taps, int64_t threads, float* moments, char* err,
+                                     int64_t err_len) {
+    using namespace mipslam_cpu;
+    return guarded(err, err_len, [&] {
+        MIPSLAM_CHECK(height >= 1 && width >= 1 && channels >= 1, "mipslam_ssim_moments: bad sizes");
+        MIPSLAM_CHECK(taps >= 1 && taps <= ssim::MAX_TAPS && taps % 2 == 1, "mipslam_ssim_moments: ", taps,
+                      " window taps, expected an odd count up to ", ssim::MAX_TAPS);
+        for (int64_t k = 0; k < taps / 2; ++k)
+            MIPSLAM_CHECK(window[k] == window[taps - 1 - k], "mipslam_ssim_moments: the window is not symmetric");
+        const ssim::Geometry G(height, width, channels, window, (int)taps);
+        ssim::moments(G, target, std::max<int>(1, (int)threads), moments);
     });
 }
