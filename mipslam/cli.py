@@ -12,13 +12,15 @@ errors into exit codes (0 success, 1 unexpected failure, 2 usage/config/data err
                  | --gt GT.txt --est EST.txt
     mipslam export RUN_DIR --mesh mesh.ply [--voxel-size M] [--overwrite]
     mipslam synth --out DIR --format replica|tum --trajectory loop ... [--overwrite]
-    mipslam config CONFIG [--preset P] [--set k=v]...
+    mipslam config CONFIG [--preset P] [--set k=v]...  |  mipslam config --list
     mipslam bench SEQUENCE_OR_CONFIG [--presets fast,balanced,accurate] [--sweep KEY=V1,V2]... [--repeat 3]
                   [--threads 2] [--max-frames N] [--set k=v]... [--out DIR] [--jobs N | --ray [ADDRESS]]
                   [--peers open3d,orbslam3 [--vocab FILE] [--peers-only] [--peer-repeat N] [--peer-set k=v]...]
     mipslam bench --train-vocab FILE --vocab-images DIR [DIR...] [--vocab-k 10] [--vocab-levels 5]
     mipslam bench --scenario NAME [--out DIR] [--smoke] [--threads N] [--set NAME.KEY=VALUE]... [--set k=v]...
     mipslam bench --list-scenarios
+
+CONFIG is a YAML file or a built-in config's name (base, replica, synthetic, tum: ``mipslam config --list``).
 """
 from __future__ import annotations
 
@@ -135,7 +137,8 @@ def _build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="run SLAM on a sequence described by a config file")
     run.add_argument("config", type=Path, nargs="?",
-                     help="YAML config (e.g. configs/replica.yaml); with --resume, default the run's own config.yaml")
+                     help="a built-in config's name (replica, tum, synthetic: mipslam config --list) or a YAML file; "
+                          "with --resume, default the run's own config.yaml")
     _add_config_args(run)
     run.add_argument("--out", type=Path, metavar="DIR",
                      help="run folder, new or empty (default: runs/<config name>-<time>)")
@@ -226,7 +229,8 @@ def _build_parser() -> argparse.ArgumentParser:
 
     be = sub.add_parser("bench", help="run presets/sweeps on a sequence, repeated, and tabulate speed against accuracy")
     be.add_argument("target", type=Path, metavar="SEQUENCE_OR_CONFIG", nargs="?",
-                    help="a YAML config, or a Replica / TUM / data_synth sequence folder (its configs/<kind>.yaml is used)")
+                    help="a YAML config or a built-in config's name, or a Replica / TUM / data_synth sequence folder "
+                         "(the built-in config of its kind is used)")
     be.add_argument("--presets", default=None, metavar="P1,P2,...",
                     help="presets to compare, e.g. fast,balanced,accurate ('none' = the config as it is; default none)")
     be.add_argument("--sweep", dest="sweeps", action="append", default=[], metavar="KEY=V1,V2,...",
@@ -312,8 +316,11 @@ def _build_parser() -> argparse.ArgumentParser:
                     help="save a screenshot of the page (headless Chromium) to PNG and exit instead of serving")
     vw.add_argument("--size", default="960x640", metavar="WxH", help="screenshot size in pixels (default 960x640)")
 
-    cf = sub.add_parser("config", help="print the resolved config (file + preset + overrides)")
-    cf.add_argument("config", type=Path)
+    cf = sub.add_parser("config", help="print the resolved config (file + preset + overrides), or list the built-in "
+                                       "configs")
+    cf.add_argument("config", type=Path, nargs="?",
+                    help="a built-in config's name (base, replica, synthetic, tum) or a YAML file")
+    cf.add_argument("--list", action="store_true", help="list the built-in configs and presets, and where they are")
     _add_config_args(cf)
     return parser
 
@@ -323,12 +330,37 @@ def _build_parser() -> argparse.ArgumentParser:
 def _cmd_config(args) -> int:
     from mipslam.config import config_to_yaml, load_config
 
+    if args.list:
+        if args.config is not None or args.preset or args.overrides:
+            raise _UsageError("mipslam config: --list takes no CONFIG, --preset or --set")
+        return _list_configs()
+    if args.config is None:
+        raise _UsageError("mipslam config: give a CONFIG (a built-in config's name or a YAML file), or --list")
     sys.stdout.write(config_to_yaml(load_config(args.config, preset=args.preset, overrides=args.overrides)))
     return EXIT_OK
 
 
+def _list_configs() -> int:
+    from mipslam.config import CONFIG_DIR, builtin_configs
+
+    configs = builtin_configs()
+    if not configs:
+        raise MipslamError(f"{CONFIG_DIR}: no built-in configs; the installed package is incomplete, reinstall mipslam")
+    width = max(len(c.name) for c in configs)
+    print("built-in configs (mipslam run NAME --set dataset.path=DIR; inherit_from: NAME):")
+    for c in configs:
+        if not c.preset:
+            print(f"  {c.name:<{width}}  {c.description}")
+    print("presets (--preset NAME, laid over the config):")
+    for c in configs:
+        if c.preset:
+            print(f"  {c.name:<{width}}  {c.description}")
+    print(f"files: {CONFIG_DIR}")
+    return EXIT_OK
+
+
 def _cmd_run(args) -> int:
-    from mipslam.config import load_config
+    from mipslam.config import load_config, resolve_config_source
     from mipslam.datasets import make_sequence
     from mipslam.io.run_folder import RunFolder, prepare_new_run_folder
     from mipslam.pipeline import resolve_device, run_slam
@@ -350,10 +382,11 @@ def _cmd_run(args) -> int:
     else:
         if args.config is None:
             raise _UsageError("mipslam run: give a CONFIG file to start a run, or --resume RUN_DIR to continue one")
-        if args.config.is_dir() and (args.config / RunFolder.CHECKPOINTS).is_dir():
+        source = resolve_config_source(args.config)  # a file, or a built-in config's name
+        if source.is_dir() and (source / RunFolder.CHECKPOINTS).is_dir():
             raise _UsageError(f"{args.config}: is a run folder, not a config file; continue it with "
                               f"mipslam run --resume {args.config}")
-        config = load_config(args.config, preset=args.preset, overrides=args.overrides)
+        config = load_config(source, preset=args.preset, overrides=args.overrides)
         folder = RunFolder(args.out or _default_run_dir(args.config))
         # What can be checked before a folder is made or an earlier run replaced: the dataset opens, the device exists.
         if not _is_stream(config):  # a camera is opened once, by the run

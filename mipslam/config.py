@@ -1,8 +1,12 @@
 """Typed, frozen configuration: one dataclass per stage, loaded from YAML.
 
+* The built-in configs ship inside the package (``mipslam/configs/*.yaml``, :data:`CONFIG_DIR`): the dataset
+  configs (``base``, ``replica``, ``tum``, ``synthetic``) and the presets (:data:`PRESETS`). Wherever a config
+  file is asked for (``mipslam run CONFIG``, :func:`load_config`, ``inherit_from``), a name that is not an
+  existing file but a built-in's name (``tum``) means that built-in (:func:`resolve_config_source`).
 * A YAML file may name ``inherit_from: other.yaml`` (or a list); paths are relative to the file.
   Parents are merged first, the child overrides them key by key (deeply); cycles are an error.
-* ``--preset NAME`` overlays ``configs/NAME.yaml`` after the file; ``--set a.b=value`` overrides
+* ``--preset NAME`` overlays the built-in ``NAME`` after the file; ``--set a.b=value`` overrides
   come last (values parsed as YAML scalars/lists).
 * Unknown keys are rejected with the nearest valid key; values are type-checked and range-checked.
 * YAML is always read with ``yaml.safe_load``.
@@ -28,7 +32,8 @@ from mipslam.loop.registration import RegistrationOptions
 from mipslam.loop.solver import PGOOptions
 from mipslam.render import RenderOptions, render_option_problems
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+# The built-in configs: package data (pyproject.toml), so an installed wheel has them as a checkout does.
+CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 PRESETS = ("fast", "balanced", "accurate")
 
 
@@ -262,7 +267,7 @@ class TrackingConfig:
     # while Replica, fr1_xyz and the data_synth lap moved by at most 0.03, 0.06, 0.24 cm over 0.5-0.9 (docs/tracking.md).
     direct_alpha_color: float = 0.8
     # The alignment's depth residuals in units of z^p (0: metres), z the point's depth: an active sensor's depth
-    # noise grows as z^2 (Kinect, RealSense; configs/tum.yaml sets 2), so far pixels count less; its robust
+    # noise grows as z^2 (Kinect, RealSense; the built-in tum config sets 2), so far pixels count less; its robust
     # scale stays per frame. Noise-free renders (Replica, data_synth) keep metres (docs/tracking.md, "Depth noise").
     direct_depth_noise_power: float = 0.0
 
@@ -382,7 +387,7 @@ class MappingConfig:
     # in mapping: "always"; "final": never while frames are tracked (it moves the colours alone, as if the image it
     # scores were rendered with the geometry and the pose held fixed), so only the final refinement's loss moves
     # them. On rendered images every edge is geometry and "always" tracks best; on a real camera's the loss pulls
-    # the geometry after detail that tracking then reads wrong, and configs/tum.yaml takes "final"
+    # the geometry after detail that tracking then reads wrong, and the built-in tum config takes "final"
     # (docs/mapping.md, "The frequency loss and the geometry").
     freq_moves_geometry: Literal["final", "always"] = "always"
     add_opacity_threshold: float = 0.5
@@ -400,6 +405,10 @@ class MappingConfig:
     # the raw depth term then places the Gaussians about 1 / A - 1 too far; `fast` uses 0.98 (`mipslam bench --scenario tracking_bias`).
     initial_opacity: float = 0.5
     prune_opacity: float = 0.005
+    # New Gaussians also go where the sensor gave no depth, up to this many pixels from a measured one, at the depth
+    # grown from the measured pixels beside them (mipslam.gaussians.fill_depth_holes): a Kinect-type sensor leaves
+    # a quarter of its pixels (image borders, object edges, dark surfaces) without depth. 0 = only measured pixels.
+    fill_depth_holes_px: int = 0
     prune_max_sigma_px: float = 50.0  # std-dev larger than this many pixels (seen from the keyframe) is absurd
     max_gaussians: int = 200_000
     # Steps of the mapping loss after the last frame, over every keyframe (each pass in a random order), poses
@@ -431,6 +440,7 @@ class MappingConfig:
         _check(self.densify_pixel_stride >= 1, "mapping.densify_pixel_stride", "must be >= 1")
         _check(0 < self.initial_opacity < 1, "mapping.initial_opacity", "must be in (0, 1)")
         _check(self.prune_max_sigma_px > 0, "mapping.prune_max_sigma_px", "must be positive")
+        _check(self.fill_depth_holes_px >= 0, "mapping.fill_depth_holes_px", "must be >= 0 pixels (0 = off)")
         _check(self.add_min_distance_ratio >= 0, "mapping.add_min_distance_ratio", "must be >= 0 (0 = off)")
         _check(self.initial_scale_factor > 0, "mapping.initial_scale_factor", "must be positive")
 
@@ -466,7 +476,7 @@ class LoopConfig:
     # verification method: dense RGB-D alignment, tracking's Gauss-Newton (direct) or Open3D's (rgbd_odometry),
     # the most robust on the room scenes; direct verifies the same candidates 5x faster (docs/pgo.md)
     registration: Literal["direct", "rgbd_odometry", "point_to_plane", "colored"] = "direct"
-    # direct verification's depth residuals in units of z^p, as tracking.direct_depth_noise_power (configs/tum.yaml: 2)
+    # direct verification's depth residuals in units of z^p, as tracking.direct_depth_noise_power (built-in tum: 2)
     registration_depth_noise_power: float = RegistrationOptions.direct_depth_noise_power
     icp_fitness_threshold: float = RegistrationOptions.fitness_threshold  # fraction of points with a correspondence
     icp_rmse_threshold: float = RegistrationOptions.rmse_threshold  # verification: inlier RMSE, metres
@@ -741,8 +751,12 @@ def _shown(path: Path) -> str:
 def _missing_file_message(path: Path) -> str:
     """'config file not found', with the nearest YAML file of that folder when there is a likely one."""
     folder = path.parent
+    builtin = path.stem if path.suffix.lower() in (".yaml", ".yml") and path.stem in builtin_config_names() else None
+    hint = f"; for the built-in config give its name: {builtin}" if builtin else ""
     if not folder.is_dir():
-        return f"{_shown(path)}: config file not found (folder {_shown(folder)} does not exist)"
+        return f"{_shown(path)}: config file not found (folder {_shown(folder)} does not exist){hint}"
+    if builtin:  # configs/tum.yaml of an older checkout, tum.yaml: the built-in is the likely meaning
+        return f"{_shown(path)}: config file not found{hint}"
     try:
         names = sorted(p.name for p in folder.iterdir() if p.suffix.lower() in (".yaml", ".yml") and p.is_file())
     except OSError:
@@ -782,10 +796,10 @@ def _read_yaml(path: Path) -> dict[str, Any]:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise ConfigError(f"{_shown(path)}: not a YAML text file (byte 0x{raw[exc.start]:02x} at offset {exc.start} "
-                          "is not UTF-8); give a .yaml config such as configs/replica.yaml") from None
+                          "is not UTF-8); give a YAML config file or a built-in config's name, e.g. replica") from None
     if "\x00" in text:
-        raise ConfigError(f"{_shown(path)}: not a YAML text file (it contains NUL bytes); give a .yaml config such as "
-                          "configs/replica.yaml")
+        raise ConfigError(f"{_shown(path)}: not a YAML text file (it contains NUL bytes); give a YAML config file or a "
+                          "built-in config's name, e.g. replica")
     try:
         data = yaml.safe_load(text)
     except (yaml.YAMLError, ValueError, TypeError, OverflowError, RecursionError) as exc:
@@ -833,6 +847,7 @@ def load_yaml_tree(path: str | Path, _stack: tuple[Path, ...] = ()) -> dict[str,
     """Read a YAML config and everything it inherits from, merged (parents first).
 
     Relative paths under ``dataset.path`` are resolved against the directory of the file that names them.
+    An ``inherit_from`` entry is a file relative to this one or, where no such file exists, a built-in config's name.
     """
     try:
         path = Path(path).resolve()
@@ -849,10 +864,15 @@ def load_yaml_tree(path: str | Path, _stack: tuple[Path, ...] = ()) -> dict[str,
     if isinstance(parents, str):
         parents = [parents]
     if not isinstance(parents, list) or not all(isinstance(p, str) for p in parents):
-        raise ConfigError(f"{_shown(path)}: inherit_from must be a file name or a list of file names")
+        raise ConfigError(f"{_shown(path)}: inherit_from must be a file name, a built-in config's name or a list of "
+                          "them")
     merged: dict[str, Any] = {}
     for parent in parents:
-        merged = _deep_merge(merged, load_yaml_tree(path.parent / parent, (*_stack, path)))
+        try:
+            source = resolve_config_source(parent, base=path.parent)
+        except ConfigError as exc:
+            raise ConfigError(f"{_shown(path)}: inherit_from: {exc}") from None
+        merged = _deep_merge(merged, load_yaml_tree(source, (*_stack, path)))
     return _deep_merge(merged, data)
 
 
@@ -882,6 +902,95 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
     return data
 
 
+@dataclass(frozen=True)
+class BuiltinConfig:
+    """A config shipped in the package (``mipslam/configs/NAME.yaml``)."""
+
+    name: str
+    path: Path
+    description: str  # the file's first comment line
+    preset: bool  # an overlay for --preset NAME (else a config to run or inherit from)
+
+
+def builtin_config_names() -> tuple[str, ...]:
+    """The built-in configs' names: the dataset configs (sorted), then the presets in :data:`PRESETS` order."""
+    try:
+        names = {p.stem for p in CONFIG_DIR.glob("*.yaml") if p.is_file()}
+    except OSError:
+        names = set()
+    return (*sorted(names - set(PRESETS)), *(name for name in PRESETS if name in names))
+
+
+def _first_comment_line(path: Path) -> str:
+    """The file's first comment line, up to the end of its first sentence."""
+    try:
+        with path.open(encoding="utf-8") as f:
+            for line in f:
+                if line.lstrip().startswith("#"):
+                    text = line.strip().lstrip("#").strip()
+                    return text.split(". ", 1)[0] + "." if ". " in text else text
+                if line.strip():
+                    break  # the comment must come before the first key
+    except (OSError, UnicodeDecodeError):
+        pass
+    return ""
+
+
+def builtin_configs() -> tuple[BuiltinConfig, ...]:
+    """Every built-in config with its description (``mipslam config --list``), in :func:`builtin_config_names` order."""
+    return tuple(BuiltinConfig(name, CONFIG_DIR / f"{name}.yaml", _first_comment_line(CONFIG_DIR / f"{name}.yaml"),
+                               name in PRESETS) for name in builtin_config_names())
+
+
+def _available_configs() -> str:
+    names = builtin_config_names()
+    configs = [n for n in names if n not in PRESETS]
+    presets = [n for n in names if n in PRESETS]
+    text = f"built-in configs: {', '.join(configs) or 'none (the package is incomplete; reinstall mipslam)'}"
+    return f"{text} (presets: {', '.join(presets)})" if presets else text
+
+
+def builtin_config_path(name: str) -> Path:
+    """The file of the built-in config ``name`` (``tum`` -> ``mipslam/configs/tum.yaml``); a ConfigError that
+    names the nearest built-in and lists them all otherwise."""
+    names = builtin_config_names()
+    if name in names:
+        return CONFIG_DIR / f"{name}.yaml"
+    near = difflib.get_close_matches(name, names, n=1)
+    hint = f" (did you mean '{near[0]}'?)" if near else ""
+    raise ConfigError(f"unknown config {_quoted(name)}{hint}; {_available_configs()}; or give a YAML file")
+
+
+def _looks_like_a_name(text: str) -> bool:
+    """``tum`` (a built-in's name, perhaps misspelt), not ``my.yaml`` or ``dir/file`` (a file path)."""
+    return bool(text) and "/" not in text and "\\" not in text and not Path(text).suffix and text not in (".", "..")
+
+
+def resolve_config_source(source: str | Path, base: str | Path | None = None) -> Path:
+    """The file a config argument names: ``source`` (relative to ``base``, default the working directory) when it
+    is an existing file, else the built-in config of that name (``tum``), else ``source`` as a path (reading it
+    then reports the missing file). A bare name that is neither (``tmu``) is a ConfigError that lists the
+    built-ins."""
+    text = str(source)
+    path = Path(source) if base is None else Path(base) / source
+    try:
+        is_file = path.is_file()
+    except (OSError, ValueError):  # a NUL byte, a name too long: reading it reports the problem
+        return path
+    if is_file:
+        return path
+    if text in builtin_config_names():
+        return CONFIG_DIR / f"{text}.yaml"
+    if _looks_like_a_name(text) and not path.exists():
+        files = [path.with_name(path.name + suffix) for suffix in (".yaml", ".yml")]
+        sibling = next((file for file in files if file.is_file()), None)
+        if sibling is not None:  # `inherit_from: parent` beside parent.yaml
+            raise ConfigError(f"unknown config {_quoted(text)} (did you mean {_shown(sibling)}?); "
+                              f"{_available_configs()}; or give a YAML file")
+        builtin_config_path(text)  # raises: unknown config, with the nearest built-in
+    return path
+
+
 def preset_path(name: str) -> Path:
     if name not in PRESETS:
         near = difflib.get_close_matches(name, PRESETS, n=1)
@@ -889,17 +998,18 @@ def preset_path(name: str) -> Path:
         raise ConfigError(f"unknown preset '{name}'{hint}; choose one of {', '.join(PRESETS)}")
     path = CONFIG_DIR / f"{name}.yaml"
     if not path.is_file():
-        raise ConfigError(f"{path}: preset file missing; reinstall mipslam from a full checkout")
+        raise ConfigError(f"{path}: preset file missing; the installed package is incomplete, reinstall mipslam")
     return path
 
 
 def load_config(path: str | Path | None = None, *, preset: str | None = None, overrides: list[str] | None = None) -> Config:
     """Resolve a config: file (with inherit_from) -> preset overlay -> ``--set`` overrides.
 
-    Path keys come out absolute: relative to the YAML file that names them, or to the working directory
-    for ``--set``. Every problem is a ConfigError naming the file (line and column for YAML syntax).
+    ``path`` is a YAML file or a built-in config's name (``"tum"``: :func:`resolve_config_source`); None starts
+    from the defaults. Path keys come out absolute: relative to the YAML file that names them, or to the working
+    directory for ``--set``. Every problem is a ConfigError naming the file (line and column for YAML syntax).
     """
-    data: dict[str, Any] = load_yaml_tree(path) if path is not None else {}
+    data: dict[str, Any] = load_yaml_tree(resolve_config_source(path)) if path is not None else {}
     if preset:
         data = _deep_merge(data, load_yaml_tree(preset_path(preset)))
     data = apply_overrides(data, list(overrides or []))

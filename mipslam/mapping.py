@@ -45,6 +45,7 @@ from mipslam.gaussians import (
     densify_pixel_mask,
     distances_to_camera,
     far_from_existing,
+    fill_depth_holes,
     gaussians_from_rgbd,
     prune_mask,
 )
@@ -144,18 +145,23 @@ class Mapper:
         if budget <= 0:
             return 0
         T_cw = se3_inverse(view.T_wc).to(gmap.dtype)
+        depth = view.depth
+        if cfg.fill_depth_holes_px > 0:
+            depth = fill_depth_holes(view.depth, cfg.fill_depth_holes_px)
         if len(gmap) == 0:
-            mask = view.depth > 0
+            mask = depth > 0
         else:
             out = render_view(gmap.activated(), T_cw, view.intrinsics, self.render_config, normalized_depth=True)
             mask = densify_pixel_mask(out.alpha, out.depth_normalized, view.depth,
                                       opacity_threshold=cfg.add_opacity_threshold,
                                       depth_error_ratio=cfg.add_depth_error_ratio)
+            # pixels without a measurement: only where the map renders them transparent (no depth test there)
+            mask |= (view.depth <= 0) & (depth > 0) & (out.alpha < cfg.add_opacity_threshold)
         stride = cfg.densify_pixel_stride
         grid = torch.zeros_like(mask)
         grid[::stride, ::stride] = True
         mask = cap_pixel_mask(mask & grid, budget)
-        new = gaussians_from_rgbd(view.color, view.depth, view.intrinsics.matrix(gmap.dtype, gmap.device),
+        new = gaussians_from_rgbd(view.color, depth, view.intrinsics.matrix(gmap.dtype, gmap.device),
                                   view.T_wc.to(gmap.dtype), mask, initial_opacity=cfg.initial_opacity,
                                   anchor_keyframe=view.keyframe_id, created_frame=frame_index, pixel_stride=stride,
                                   scale_factor=cfg.initial_scale_factor)

@@ -71,10 +71,12 @@ def test_sequence_folders_are_detected(tmp_path):
     other.mkdir()
     for folder, kind in ((replica, "replica"), (tum, "tum"), (synth, "synthetic")):
         target = resolve_target(folder)
-        assert target.kind == kind and target.config_path == REPO / "configs" / f"{kind}.yaml"
+        assert target.kind == kind and target.config_path == REPO / "mipslam" / "configs" / f"{kind}.yaml"
         assert target.base_overrides == (f"dataset.path={folder.resolve()}",)
-    config = resolve_target(REPO / "configs" / "tum.yaml")
+    config = resolve_target(REPO / "mipslam" / "configs" / "tum.yaml")
     assert config.kind == "config" and config.base_overrides == ()
+    builtin = resolve_target("tum")  # a built-in config by name, as mipslam run takes it
+    assert builtin.kind == "config" and builtin.config_path == config.config_path and builtin.name == "tum"
     with pytest.raises(DatasetError, match="not a sequence folder"):
         resolve_target(other)
     with pytest.raises(DatasetError, match="not found"):

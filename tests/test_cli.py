@@ -28,17 +28,46 @@ def test_help_and_version(capsys):
 
 
 def test_config_prints_the_resolved_config(capsys):
-    assert main(["config", str(REPO / "configs" / "tum.yaml"), "--preset", "fast", "--set", "tracking.iterations=7"]) == 0
+    assert main(["config", "tum", "--preset", "fast", "--set", "tracking.iterations=7"]) == 0
     out = capsys.readouterr().out
     assert "iterations: 7" in out and "kind: tum" in out
+
+
+def test_config_list_shows_the_built_in_configs_and_presets(capsys):
+    from mipslam.config import CONFIG_DIR
+
+    assert main(["config", "--list"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    rows = {line.split()[0]: line for line in lines if line.startswith("  ")}
+    assert list(rows) == ["base", "replica", "synthetic", "tum", "fast", "balanced", "accurate"]
+    assert "TUM RGB-D" in rows["tum"] and "data_synth" in rows["synthetic"]
+    presets = lines.index(next(line for line in lines if line.startswith("presets")))
+    assert all(lines.index(rows[name]) > presets for name in ("fast", "balanced", "accurate"))
+    assert all(lines.index(rows[name]) < presets for name in ("base", "replica", "synthetic", "tum"))
+    assert lines[-1] == f"files: {CONFIG_DIR}"
+
+
+def test_config_by_name_with_a_preset_from_any_folder(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["config", "tum", "--preset", "fast"]) == 0
+    by_name = capsys.readouterr().out
+    assert main(["config", str(REPO / "mipslam" / "configs" / "tum.yaml"), "--preset", "fast"]) == 0
+    assert capsys.readouterr().out == by_name and "kind: tum" in by_name
 
 
 @pytest.mark.parametrize(
     "argv, message",
     [
         (["config", "nope.yaml"], "config file not found"),
-        (["config", str(REPO / "configs" / "base.yaml"), "--set", "mapping.iteratoins=3"], "did you mean 'mapping.iterations'"),
+        (["config", "base", "--set", "mapping.iteratoins=3"], "did you mean 'mapping.iterations'"),
         (["run"], "give a CONFIG file to start a run, or --resume RUN_DIR"),
+        (["config", "tmu"], "unknown config 'tmu' (did you mean 'tum'?); built-in configs: base, replica, synthetic, "
+                            "tum (presets: fast, balanced, accurate); or give a YAML file"),
+        (["run", "tmu"], "unknown config 'tmu'"),
+        (["config"], "give a CONFIG (a built-in config's name or a YAML file), or --list"),
+        (["config", "--list", "tum"], "--list takes no CONFIG"),
+        (["run", "tum", "--out", "/nonexistent/never"], "dataset.path is empty; point it at a tum folder with --set "
+                                                        "dataset.path=DIR"),
         (["eval"], "give a RUN_DIR, or both --gt"),
         (["synth", "--out", "/tmp/x", "--format", "kitti"], "invalid choice"),
         (["frobnicate"], "invalid choice"),
@@ -102,7 +131,7 @@ def tiny_sequence(tmp_path_factory) -> Path:
 
 
 def run_argv(sequence: Path | str, out: Path, *extra: str) -> list[str]:
-    argv = ["-q", "run", str(REPO / "configs" / "synthetic.yaml"), "--no-eval", "--out", str(out)]
+    argv = ["-q", "run", "synthetic", "--no-eval", "--out", str(out)]
     for item in (f"dataset.path={sequence}", *TINY, *extra):
         argv += ["--set", item]
     return argv
@@ -132,6 +161,17 @@ def copy_run(run_dir: Path, to: Path) -> Path:
     import shutil
 
     return Path(shutil.copytree(run_dir, to))
+
+
+def test_a_run_by_name_from_another_folder_lands_in_runs_there(tiny_sequence, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    argv = ["-q", "run", "synthetic", "--preset", "fast", "--no-eval"]
+    for item in (f"dataset.path={tiny_sequence}", *TINY, "dataset.max_frames=2", "mapping.first_frame_iterations=5"):
+        argv += ["--set", item]
+    assert main(argv) == 0
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    assert run_dir.name.startswith("synthetic-") and (run_dir / "traj_est.txt").is_file()
+    assert "kind: synthetic" in (run_dir / "config.yaml").read_text()
 
 
 def test_a_run_folder_holds_only_what_a_run_writes(partial_run):
@@ -263,8 +303,8 @@ def test_config_file_mistakes_are_one_line_with_exit_code_2(tmp_path, capsys):
     bad.write_text("tracking:\n  iterations: 3\n   alpha_color: [1\n")
     assert main(["config", str(bad)]) == 2
     assert f"{bad}:3:" in error_line(capsys)
-    assert main(["config", str(REPO / "configs" / "replca.yaml")]) == 2
-    assert "did you mean" in (err := error_line(capsys)) and str(REPO / "configs" / "replica.yaml") in err
+    assert main(["config", str(REPO / "mipslam" / "configs" / "replca.yaml")]) == 2
+    assert "did you mean" in (err := error_line(capsys)) and str(REPO / "mipslam" / "configs" / "replica.yaml") in err
     assert main(["run", str(tmp_path)]) == 2
     assert "is a folder" in error_line(capsys)
 

@@ -8,8 +8,11 @@ from pathlib import Path
 import pytest
 
 from mipslam.config import (
+    CONFIG_DIR,
     PRESETS,
     Config,
+    builtin_config_names,
+    builtin_configs,
     config_from_dict,
     config_to_dict,
     config_to_yaml,
@@ -19,7 +22,7 @@ from mipslam.config import (
 from mipslam.errors import ConfigError
 
 REPO = Path(__file__).resolve().parent.parent
-CONFIGS = REPO / "configs"
+CONFIGS = REPO / "mipslam" / "configs"
 
 
 def test_defaults_round_trip_through_yaml(tmp_path):
@@ -242,6 +245,84 @@ def test_a_misspelt_file_name_suggests_the_nearest_file(tmp_path):
         load_config(tmp_path / "no_such_folder" / "c.yaml")
     with pytest.raises(ConfigError, match=r"zzz.yaml: config file not found \(YAML files there: child.yaml, parent.yaml\)"):
         load_config(tmp_path / "zzz.yaml")
+
+
+# ----------------------------------------------------------------------------- built-in configs by name
+
+def test_the_built_in_configs_are_package_data_inside_the_package():
+    assert CONFIG_DIR == REPO / "mipslam" / "configs" and not (REPO / "configs").exists()
+    assert builtin_config_names() == ("base", "replica", "synthetic", "tum", *PRESETS)
+    assert sorted(p.stem for p in CONFIG_DIR.glob("*.yaml")) == sorted(builtin_config_names())
+    listed = {c.name: c for c in builtin_configs()}
+    assert [name for name, c in listed.items() if c.preset] == list(PRESETS)
+    assert all(c.description and not c.description.startswith("#") for c in listed.values())
+    assert listed["tum"].description.startswith("TUM RGB-D")
+
+
+@pytest.mark.parametrize("name", ["base", "replica", "tum", "synthetic", *PRESETS])
+def test_a_built_in_config_points_at_no_folder(name):
+    """A packaged config cannot name a sequence: no checkout's sibling folder exists beside an installed package."""
+    tree = load_yaml_tree(CONFIG_DIR / f"{name}.yaml")
+    assert not (tree.get("dataset") or {}).get("path")
+    assert load_config(name).dataset.path == ""
+
+
+def test_a_built_in_config_by_name_is_its_file(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # any folder: nothing is read relative to the working directory
+    assert load_config("tum") == load_config(CONFIG_DIR / "tum.yaml")
+    assert load_config("replica", preset="fast") == load_config(CONFIG_DIR / "replica.yaml", preset="fast")
+    assert load_config("tum").dataset.kind == "tum"
+    # an existing file wins over the built-in of the same name
+    (tmp_path / "tum").write_text("dataset:\n  kind: replica\n")
+    assert load_config("tum").dataset.kind == "replica"
+    # ... but a folder of that name (a sequence called tum, say) does not hide the built-in
+    (tmp_path / "replica").mkdir()
+    assert load_config("replica").dataset.kind == "replica"
+    assert load_config("replica").dataset.depth_scale == 6553.5
+
+
+def test_an_unknown_config_name_lists_the_built_ins(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError, match=r"unknown config 'tmu' \(did you mean 'tum'\?\); built-in configs: base, "
+                                          r"replica, synthetic, tum \(presets: fast, balanced, accurate\); or give a "
+                                          r"YAML file"):
+        load_config("tmu")
+    (tmp_path / "mine.yaml").write_text("run:\n  seed: 1\n")
+    with pytest.raises(ConfigError, match=r"unknown config 'mine' \(did you mean .*mine.yaml\?\)"):
+        load_config("mine")
+    # a file path stays a file path: not found, with the built-in's name where the file was a built-in's
+    with pytest.raises(ConfigError, match=r"tum.yaml: config file not found; for the built-in config give its name: "
+                                          r"tum"):
+        load_config("tum.yaml")
+    with pytest.raises(ConfigError, match=r"configs/tum.yaml: config file not found \(folder .* does not exist\); "
+                                          r"for the built-in config give its name: tum"):
+        load_config("configs/tum.yaml")
+
+
+def test_inherit_from_may_name_a_built_in(tmp_path):
+    (tmp_path / "mycam.yaml").write_text("inherit_from: tum\ndataset:\n  path: seq\n  camera: ''\n  fx: 500\n")
+    config = load_config(tmp_path / "mycam.yaml", preset="fast")
+    tum = load_config("tum", preset="fast")
+    assert config.dataset.kind == "tum" and config.dataset.fx == 500 and config.dataset.camera == ""
+    assert config.dataset.path == str(tmp_path / "seq")  # relative to the file that names it
+    assert config.dataset.depth_scale == tum.dataset.depth_scale and config.tracking == tum.tracking
+    # a file beside it wins over a built-in of the same name; a list may mix both
+    (tmp_path / "base").write_text("run:\n  seed: 7\n")
+    (tmp_path / "mix.yaml").write_text("inherit_from: [replica, base]\n")
+    mixed = load_config(tmp_path / "mix.yaml")
+    assert mixed.run.seed == 7 and mixed.dataset.kind == "replica"
+    (tmp_path / "typo.yaml").write_text("inherit_from: tmu\n")
+    with pytest.raises(ConfigError, match=r"typo.yaml: inherit_from: unknown config 'tmu' \(did you mean 'tum'\?\); "
+                                          r"built-in configs: base, replica, synthetic, tum"):
+        load_config(tmp_path / "typo.yaml")
+
+
+def test_presets_are_read_from_the_package_wherever_the_run_starts(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    fast = load_config(preset="fast")
+    assert fast == load_config(overrides=[], preset="fast") and fast != load_config()
+    assert load_config("synthetic", preset="accurate").render.eaa_max_nodes == \
+        load_yaml_tree(CONFIG_DIR / "accurate.yaml")["render"]["eaa_max_nodes"]
 
 
 def test_config_objects_are_frozen():

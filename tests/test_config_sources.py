@@ -17,7 +17,6 @@ from mipslam.render import RenderOptions
 from mipslam.rendering import render_options
 from mipslam.state import FrameRecord, SLAMState
 from mipslam.tracking import TrackingResult
-from tiny_runs import REPO
 
 
 def test_render_config_defaults_and_checks_are_the_renderers():
@@ -27,7 +26,7 @@ def test_render_config_defaults_and_checks_are_the_renderers():
         assert value == expected, option
     # the renderer's rule, reported under the config key
     with pytest.raises(ConfigError, match=r"'render.eaa_k_sigma': must be positive"):
-        load_config(REPO / "configs" / "synthetic.yaml", overrides=["render.eaa_k_sigma=0"])
+        load_config("synthetic", overrides=["render.eaa_k_sigma=0"])
     with pytest.raises(ConfigError, match=r"'render.eaa_max_nodes': must be an integer >= 1"):
         RenderConfig(eaa_max_nodes=0)
 

@@ -238,9 +238,6 @@ def test_compiled_guided_matching_equals_the_k_d_tree_reference():
 
 # ----------------------------------------------------------------------------- with the tracker and the pipeline
 
-REPO = Path(__file__).resolve().parent.parent
-
-
 @pytest.fixture(scope="module")
 def small_sequence(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("synth") / "seq"
@@ -249,7 +246,7 @@ def small_sequence(tmp_path_factory) -> Path:
 
 
 def _config(sequence: Path, *extra: str):
-    return load_config(REPO / "configs" / "synthetic.yaml",
+    return load_config("synthetic",
                        overrides=[f"dataset.path={sequence}", "mapping.first_frame_iterations=30", "mapping.iterations=8",
                                   "tracking.iterations=10", "keyframes.window_size=3", "run.threads=1", *extra])
 

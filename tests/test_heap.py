@@ -94,7 +94,7 @@ def test_pipeline_releases_memory_every_n_frames(monkeypatch, tmp_path):
                         supersample=1)
     calls = []
     monkeypatch.setattr(run_control, "release_free_heap", lambda: calls.append(1) or True)
-    config = load_config(REPO / "configs" / "synthetic.yaml", overrides=[
+    config = load_config("synthetic", overrides=[
         f"dataset.path={sequence}", "run.release_memory_every=2", "run.threads=1", "tracking.iterations=3",
         "mapping.iterations=2", "mapping.first_frame_iterations=3", "run.evaluate_at_end=false"])
     pipeline.run_slam(config, tmp_path / "run")
@@ -103,10 +103,10 @@ def test_pipeline_releases_memory_every_n_frames(monkeypatch, tmp_path):
 
 def test_release_memory_every_must_not_be_negative():
     with pytest.raises(ConfigError, match="run.release_memory_every"):
-        load_config(REPO / "configs" / "synthetic.yaml", overrides=["run.release_memory_every=-1"])
+        load_config("synthetic", overrides=["run.release_memory_every=-1"])
 
 
 @pytest.mark.parametrize("value", ["-1", "65536"])
 def test_mmap_threshold_out_of_range_is_a_config_error(value):
     with pytest.raises(ConfigError, match="run.mmap_threshold_kib"):
-        load_config(REPO / "configs" / "synthetic.yaml", overrides=[f"run.mmap_threshold_kib={value}"])
+        load_config("synthetic", overrides=[f"run.mmap_threshold_kib={value}"])

@@ -33,7 +33,6 @@ from mipslam.pipeline import PipelineHooks, run_slam
 from mipslam.rendering import render_view
 from mipslam.state import FrameRecord, SLAMState
 
-REPO = Path(__file__).resolve().parent.parent
 F64 = torch.float64
 
 # One torch thread: on the shared 2-core machine two threads stall at every operator's barrier.
@@ -59,7 +58,7 @@ def drift_sequence(tmp_path_factory) -> Path:
 
 
 def drift_config(sequence: Path, *extra: str):
-    return load_config(REPO / "configs" / "synthetic.yaml", overrides=[f"dataset.path={sequence}", *TINY, *DRIFT, *extra])
+    return load_config("synthetic", overrides=[f"dataset.path={sequence}", *TINY, *DRIFT, *extra])
 
 
 def drift_run(sequence: Path, run_dir: Path, *extra: str, wrong: WrongLoop | None = None, resume: bool = False,
@@ -95,9 +94,9 @@ def test_disabled_stage_is_absent_and_an_idle_stage_changes_nothing(drift_sequen
     # Real tracking on the first 14 frames. Enabled, the stage finds no keyframe 10 keyframes older
     # than another, so it only stores descriptors and odometry edges: nothing else may change.
     common = [f"dataset.path={drift_sequence}", *TINY, "tracking.iterations=6", "dataset.max_frames=14"]
-    run_slam(load_config(REPO / "configs" / "synthetic.yaml", overrides=[*common, "loop.enabled=false"]),
+    run_slam(load_config("synthetic", overrides=[*common, "loop.enabled=false"]),
              tmp_path / "off", evaluate=False)
-    run_slam(load_config(REPO / "configs" / "synthetic.yaml", overrides=common), tmp_path / "on", evaluate=False)
+    run_slam(load_config("synthetic", overrides=common), tmp_path / "on", evaluate=False)
     off, on = read_tum_trajectory(tmp_path / "off" / "traj_est.txt"), read_tum_trajectory(tmp_path / "on" / "traj_est.txt")
     np.testing.assert_array_equal(off.T_wc, on.T_wc)
     map_off, map_on = read_map_ply(tmp_path / "off" / "map.ply"), read_map_ply(tmp_path / "on" / "map.ply")
@@ -395,7 +394,7 @@ def test_verification_rejects_a_correction_larger_than_the_odometry_can_have_dri
     from mipslam.loop.closer import LoopCloser
     from mipslam.loop.registration import RegistrationResult
 
-    config = load_config(REPO / "configs" / "base.yaml")  # odometry sigma 1 cm + 5 % of the path, 3 sigma
+    config = load_config("base")  # odometry sigma 1 cm + 5 % of the path, 3 sigma
     closer = LoopCloser(config.loop)
     # 20 keyframes 2 cm apart along x, no rotation: 0.38 m of path, 3 x (0.01 + 0.05 x 0.38) = 8.7 cm allowed.
     chain = torch.eye(4, dtype=F64).repeat(20, 1, 1)

@@ -53,14 +53,14 @@ def test_cli_synth_run_eval_smoke(tmp_path):
     seq, run_dir = tmp_path / "seq", tmp_path / "run"
     assert main(["synth", "--out", str(seq), "--format", "tum", "--trajectory", "line", "--width", "32", "--height",
                  "24", "--frames", "4", "--supersample", "2"]) == 0
-    args = ["run", str(REPO / "configs" / "synthetic.yaml"), "--preset", "fast", "--out", str(run_dir),
+    args = ["run", str(REPO / "mipslam" / "configs" / "synthetic.yaml"), "--preset", "fast", "--out", str(run_dir),
             "--set", f"dataset.path={seq}"]
     for item in TINY:
         args += ["--set", item]
     assert main(args) == 0
     assert main(["eval", str(run_dir)]) == 0
     assert json.loads((run_dir / "metrics.json").read_text())["trajectory"]["ate"]["count"] == 4
-    assert main(["run", str(REPO / "configs" / "synthetic.yaml"), "--set", "tracking.iteratons=3"]) == 2
+    assert main(["run", "synthetic", "--set", "tracking.iteratons=3"]) == 2
     assert main(["eval", str(tmp_path / "missing")]) == 2
 
 

@@ -18,7 +18,6 @@ from mipslam.config import DatasetConfig
 from mipslam.datasets import StreamEnded, make_sequence
 from mipslam.errors import DatasetError
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
 rs = pytest.importorskip("pyrealsense2", reason="pyrealsense2 is not installed (pip install 'mipslam[realsense]')")
 
 # Small enough for a few seconds per run on 2 cores (as tests/test_pipeline.py).
@@ -194,7 +193,7 @@ def test_missing_and_corrupt_recordings_exit_2_with_one_line(tmp_path, capsys):
     corrupt = tmp_path / "corrupt.bag"
     corrupt.write_bytes(b"this is not a rosbag" * 100)
     for path in (missing, corrupt):
-        code = main(["-q", "run", str(REPO_ROOT / "configs" / "synthetic.yaml"), "--set", "dataset.kind=realsense_bag",
+        code = main(["-q", "run", "synthetic", "--set", "dataset.kind=realsense_bag",
                      "--set", f"dataset.path={path}", "--out", str(tmp_path / f"run-{path.stem}")])
         err = capsys.readouterr().err.strip()
         assert code == 2
@@ -209,7 +208,7 @@ def test_missing_and_corrupt_recordings_exit_2_with_one_line(tmp_path, capsys):
 def test_a_run_on_a_recording_tracks_the_synthetic_camera(recording, tmp_path):
     seq_dir, path, _ = recording
     out = tmp_path / "run"
-    assert main(["-q", "run", str(REPO_ROOT / "configs" / "synthetic.yaml"), "--preset", "fast",
+    assert main(["-q", "run", "synthetic", "--preset", "fast",
                  "--set", "dataset.kind=realsense_bag", "--set", f"dataset.path={path}",
                  *(f"--set={o}" for o in TINY), "--out", str(out)]) == 0  # no ground truth: no evaluation
     assert not (out / "metrics.json").exists()

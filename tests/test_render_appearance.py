@@ -3,8 +3,6 @@ colours alone, on both backends; and the mapping loss that scores it with the fr
 (``mapping.freq_moves_geometry``)."""
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 import torch
 
@@ -150,8 +148,7 @@ def test_the_frequency_loss_moves_the_geometry_by_default_and_on_real_cameras_on
     from mipslam.config import load_config
 
     assert MappingConfig().freq_moves_geometry == "always"
-    tum = Path(__file__).resolve().parents[1] / "configs" / "tum.yaml"
-    assert load_config(tum, preset="balanced").mapping.freq_moves_geometry == "final"
+    assert load_config("tum", preset="balanced").mapping.freq_moves_geometry == "final"
 
 
 def test_the_torch_reference_gives_the_same_appearance_gradient_when_it_recomputes_its_batches():

@@ -43,7 +43,6 @@ from mipslam.io.ply import write_map_ply
 from mipslam.io.run_folder import write_json_atomic, write_text_atomic
 from mipslam.io.tum import write_tum_trajectory
 
-REPO = Path(__file__).resolve().parent.parent
 WIDTH, HEIGHT, FRAMES, SUPERSAMPLE = 48, 36, 3, 2
 KEYFRAME_POSITIONS = (0, 2)
 
@@ -61,7 +60,7 @@ def make_tiny_run(root: Path, *, kind: str = "synthetic", downscale: int = 1, tr
     run_dir = root / (f"run_{kind}_{downscale}" if default and keyframes == KEYFRAME_POSITIONS
                       else f"run_{kind}_{downscale}_{frames}_{width}x{height}_kf{'-'.join(map(str, keyframes))}")
     run_dir.mkdir(parents=True)
-    config = load_config(REPO / "configs" / "synthetic.yaml",
+    config = load_config("synthetic",
                          overrides=[f"dataset.path={sequence_dir}", f"dataset.kind={kind}",
                                     f"dataset.downscale={downscale}", "dataset.depth_scale=6553.5"])
     sequence = make_sequence(config.dataset)

@@ -43,7 +43,6 @@ from mipslam.checkpoint import load_latest_checkpoint
 from mipslam.config import load_config
 from mipslam.pipeline import RunSummary, run_slam
 
-REPO = Path(__file__).resolve().parent.parent
 WIDTH, HEIGHT, FRAMES = 40, 30, 12
 DEPTH_SCALE = 6553.5
 MAX_GAUSSIANS = 600
@@ -166,7 +165,7 @@ class VariantRun:
 def run_variant(name: str, render: Renderer, root: Path, *extra_settings: str) -> VariantRun:
     frames, bad = build_variant(name, render)
     sequence = write_replica(root / f"seq_{name}", frames, render.intrinsics)
-    config = load_config(REPO / "configs" / "synthetic.yaml",
+    config = load_config("synthetic",
                          overrides=[f"dataset.path={sequence}", "dataset.kind=replica", *SETTINGS, *extra_settings])
     run_dir = root / f"run_{name}"
     summary = run_slam(config, run_dir, evaluate=False)

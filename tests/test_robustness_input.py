@@ -25,7 +25,6 @@ from mipslam.datasets import ReplicaSequence, TUMSequence, make_sequence
 from mipslam.errors import DatasetError
 from test_datasets import H, W, tum_cfg, write_replica, write_tum
 
-REPO = Path(__file__).resolve().parent.parent
 TINY = ["mapping.first_frame_iterations=30", "mapping.iterations=8", "mapping.densify_pixel_stride=2",
         "tracking.iterations=15", "keyframes.window_size=3", "keyframes.random_past=1", "run.threads=1"]
 
@@ -168,7 +167,7 @@ def tiny_sequence(tmp_path_factory) -> Path:
 
 
 def run_argv(sequence: Path, *extra: str, out: Path | None = None, resume: Path | None = None) -> list[str]:
-    argv = ["-q", "run", str(REPO / "configs" / "synthetic.yaml"), "--no-eval"]  # -q: warnings and errors only
+    argv = ["-q", "run", "synthetic", "--no-eval"]  # -q: warnings and errors only
     argv += ["--out", str(out)] if out is not None else []
     argv += ["--resume", str(resume)] if resume is not None else []
     for item in (f"dataset.path={sequence}", *TINY, *extra):

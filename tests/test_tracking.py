@@ -20,12 +20,12 @@ from mipslam.state import FrameRecord, SLAMState
 from mipslam.tracking import Tracker, TrackingResult, constant_velocity_prediction, relocalise
 from mipslam.types import Frame, Intrinsics
 from mipslam.datasets import make_sequence
-from tiny_runs import REPO, map_of_first_frame, tiny_config
+from tiny_runs import map_of_first_frame, tiny_config
 
 
 def _preset_tracking_overrides(preset: str) -> list[str]:
-    """The preset's optimiser keys as overrides (read from configs/, so the tests follow a retune)."""
-    tracking = load_config(REPO / "configs" / "synthetic.yaml", preset=preset).tracking
+    """The preset's optimiser keys as overrides (read from the built-in configs, so the tests follow a retune)."""
+    tracking = load_config("synthetic", preset=preset).tracking
     keys = ("optimizer", "lr_translation", "lr_rotation", "convergence_threshold")
     return [f"tracking.{key}={getattr(tracking, key)}" for key in keys]
 

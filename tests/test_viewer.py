@@ -110,7 +110,7 @@ def tiny_run(tmp_path_factory):
             assert self.frames[record.index].index == record.index  # the run's frames are attached
             observed.append((record.index, state.next_frame, len(state.gaussian_map)))
 
-    run_slam(load_config(REPO / "configs" / "synthetic.yaml", overrides=overrides), root / "run", observer=Recorder())
+    run_slam(load_config("synthetic", overrides=overrides), root / "run", observer=Recorder())
     return overrides, root / "run", observed
 
 
@@ -198,7 +198,7 @@ def test_live_viewer_leaves_the_trajectory_bit_identical(tiny_run, tmp_path):
     from mipslam.viewer.server import ViewerOptions
 
     overrides, run_dir, _ = tiny_run
-    config = load_config(REPO / "configs" / "synthetic.yaml", overrides=overrides)
+    config = load_config("synthetic", overrides=overrides)
     viewer = LiveViewer(config.render, ViewerOptions(port=0), LiveOptions(min_interval_s=0.0, max_busy_fraction=1.0))
     try:
         run_slam(config, tmp_path / "live", observer=viewer)
@@ -220,7 +220,7 @@ def test_a_failing_viewer_turns_itself_off_and_the_run_goes_on(tiny_run, tmp_pat
     from mipslam.viewer.server import ViewerOptions
 
     overrides, run_dir, _ = tiny_run
-    config = load_config(REPO / "configs" / "synthetic.yaml", overrides=overrides + ["dataset.max_frames=3"])
+    config = load_config("synthetic", overrides=overrides + ["dataset.max_frames=3"])
     viewer = LiveViewer(config.render, ViewerOptions(port=0))
 
     def broken(*args):

@@ -20,8 +20,8 @@ TINY = [
 
 
 def tiny_config(sequence: Path, *extra: str):
-    """configs/synthetic.yaml on ``sequence`` with the TINY settings and ``extra`` overrides."""
-    return load_config(REPO / "configs" / "synthetic.yaml", overrides=[f"dataset.path={sequence}", *TINY, *extra])
+    """The built-in synthetic config on ``sequence`` with the TINY settings and ``extra`` overrides."""
+    return load_config("synthetic", overrides=[f"dataset.path={sequence}", *TINY, *extra])
 
 
 def map_of_first_frame(sequence_path: Path, iterations: int):

@@ -21,7 +21,7 @@ from typing import Any
 import yaml
 
 from mipslam.bench.peers import PeerOptions, check_peers_available, default_peer_repeats
-from mipslam.config import CONFIG_DIR, PRESETS, Config, load_config, preset_path
+from mipslam.config import CONFIG_DIR, PRESETS, Config, builtin_config_names, load_config, preset_path
 from mipslam.errors import ConfigError, DatasetError, MipslamError
 
 __all__ = [
@@ -165,10 +165,16 @@ def detect_sequence_kind(folder: Path) -> str:
 
 
 def resolve_target(path: str | Path, config_dir: Path = CONFIG_DIR) -> Target:
-    """A YAML config as it is, or a sequence folder with ``configs/<kind>.yaml`` and ``dataset.path`` set."""
+    """A YAML config as it is (or a built-in config by name, ``tum``), or a sequence folder with the built-in
+    config of its kind (``config_dir/<kind>.yaml``) and ``dataset.path`` set."""
     path = Path(path).expanduser()
+    if not path.exists() and str(path) in builtin_config_names():
+        config = CONFIG_DIR / f"{path}.yaml"
+        return Target(config, (), "config", str(path), config)
     if not path.exists():
-        raise DatasetError(path, "not found; give a YAML config or a sequence folder (Replica, TUM or data_synth)")
+        names = ", ".join(name for name in builtin_config_names() if name not in PRESETS)
+        raise DatasetError(path, f"not found; give a YAML config, a built-in config's name ({names}) or a sequence "
+                                 "folder (Replica, TUM or data_synth)")
     if path.is_file():
         if path.suffix.lower() not in (".yaml", ".yml"):
             raise ConfigError(f"{path}: expected a YAML config (.yaml) or a sequence folder")
@@ -176,7 +182,7 @@ def resolve_target(path: str | Path, config_dir: Path = CONFIG_DIR) -> Target:
     kind = detect_sequence_kind(path)
     config = config_dir / f"{kind}.yaml"
     if not config.is_file():
-        raise ConfigError(f"{config}: dataset config missing; reinstall mipslam from a full checkout")
+        raise ConfigError(f"{config}: dataset config missing; the installed package is incomplete, reinstall mipslam")
     return Target(config, (f"dataset.path={path.resolve()}",), kind, path.resolve().name, path.resolve())
 
 

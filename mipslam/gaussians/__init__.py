@@ -1,5 +1,5 @@
 """The map: parameters, activations, add/remove (optimizer state resized with them), densify/prune policy."""
-from mipslam.gaussians.initialization import gaussians_from_rgbd
+from mipslam.gaussians.initialization import fill_depth_holes, gaussians_from_rgbd
 from mipslam.gaussians.model import (
     BUFFER_NAMES,
     PARAMETER_NAMES,
@@ -21,6 +21,6 @@ from mipslam.gaussians.policy import (
 
 __all__ = [
     "PARAMETER_NAMES", "BUFFER_NAMES", "ActivatedGaussians", "GaussianParameters", "GaussianMap",
-    "GaussianOptimizer", "gaussians_from_rgbd", "far_from_existing", "color_logit", "quat_multiply_wxyz",
+    "GaussianOptimizer", "gaussians_from_rgbd", "fill_depth_holes", "far_from_existing", "color_logit", "quat_multiply_wxyz",
     "densify_pixel_mask", "cap_pixel_mask", "prune_mask", "cap_count_mask", "distances_to_camera",
 ]

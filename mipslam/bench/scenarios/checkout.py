@@ -1,4 +1,5 @@
-"""Helpers the scenarios share: the source checkout (configs/, tests/) and the record's parameters.
+"""Helpers the scenarios share: the built-in configs (mipslam/configs/), the source checkout (tests/) and the
+record's parameters.
 
 ``loop_closure``, ``pgo`` and ``scaling`` build their inputs with helpers of the test suite
 (``tests/fault_injection.py``, ``tests/synthetic_pose_graphs.py``): fault injection and synthetic pose graphs
@@ -50,9 +51,9 @@ def optional_path(text: str) -> Path | None:
 
 
 def sequence_config(config: str, overrides: Sequence[str]) -> str:
-    """The config a scenario reads its sequence with: ``config`` when given, else ``configs/<kind>.yaml`` for the
-    folder the last ``dataset.path=`` override names (data_synth, Replica or TUM, as ``mipslam bench SEQUENCE``
-    chooses), else ``configs/tum.yaml``."""
+    """The config a scenario reads its sequence with: ``config`` when given (a YAML file or a built-in's name), else
+    the built-in config of the kind of the folder the last ``dataset.path=`` override names (data_synth, Replica or
+    TUM, as ``mipslam bench SEQUENCE`` chooses), else the built-in ``tum`` (which then needs ``dataset.path``)."""
     if config:
         return config
     paths = [item.split("=", 1)[1] for item in overrides if item.startswith("dataset.path=")]

@@ -9,9 +9,10 @@ then repeats the last motion) and milliseconds per frame.
     mipslam bench --scenario frontend --set dataset.path=../shared/data/tum_fr1_rpy_300 \
         --set frontend.methods=orb_pnp,cv_rgbd,o3d_rgbd
 
-``frontend.config`` is the sequence's config (default: configs/<kind>.yaml for the ``dataset.path`` folder's
-kind, as ``mipslam bench SEQUENCE`` picks it, else configs/tum.yaml), config keys (``--set dataset.path=...``)
-override it; ``frontend.synth_frames=N`` runs on a data_synth sequence of N frames generated into OUT instead.
+``frontend.config`` is the sequence's config, a YAML file or a built-in's name (default: the built-in config of
+the ``dataset.path`` folder's kind, as ``mipslam bench SEQUENCE`` picks it, else ``tum``), config keys
+(``--set dataset.path=...``) override it; ``frontend.synth_frames=N`` runs on a data_synth sequence of N frames
+generated into OUT instead.
 """
 from __future__ import annotations
 
@@ -42,7 +43,7 @@ METHODS = ("orb_pnp", "cv_rgbd", "cv_depth", "cv_rgb", "o3d_rgbd", "orb_o3d", "c
 
 @dataclass(frozen=True)
 class Options:
-    config: str = ""  # the sequence's config (its dataset section); "" = configs/<kind>.yaml of dataset.path
+    config: str = ""  # the sequence's config (its dataset section); "" = the built-in <kind> of dataset.path
     methods: tuple[str, ...] = ("orb_pnp", "cv_rgbd", "cv_depth", "o3d_rgbd", "orb_o3d")  # from METHODS
     synth_frames: int = 0  # > 0: a data_synth loop of this many frames (OUT/sequence) instead of the config's
     synth_size: str = "160x120"  # WIDTHxHEIGHT of that sequence

@@ -4,7 +4,7 @@ The sequence is data_synth's ``loop`` trajectory at 80x60 (``long_run.laps`` lap
 and as many as keep at least 240 frames per lap, where the camera looks outwards and turns a full
 360 degrees: 2 laps for 500 frames, 8 for 2000). The first lap covers the room and every later lap
 revisits it. (With fewer than 240 frames per lap, e.g. 100 frames, each lap sweeps the +x wall.) ``mipslam`` runs it with
-``configs/synthetic.yaml --preset fast`` (``run.threads`` 1 by default, checkpoints every 50
+the built-in ``synthetic`` config and ``--preset fast`` (``run.threads`` 1 by default, checkpoints every 50
 frames, 2 kept) in this process, and a per-frame probe (the run's observer,
 :class:`mipslam.observer.Observer`, sampling at the end of each frame's tracking) records, for every frame:
 

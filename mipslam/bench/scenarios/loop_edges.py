@@ -13,9 +13,10 @@ deserve.
 
 ``loop_edges.gt_time_shift_s=S`` adds S seconds to a TUM folder's ground-truth stamps before they are
 interpolated at the frames' times: an error that shrinks at some shift belongs to the ground truth's timing.
-``loop_edges.config`` is the sequence's config (default: configs/<kind>.yaml for the ``dataset.path`` folder's
-kind, as ``mipslam bench SEQUENCE`` picks it, else configs/tum.yaml); config keys (``--set loop.KEY=...``)
-override it; ``loop_edges.synth_frames=N`` runs on a data_synth loop of N frames generated into OUT instead.
+``loop_edges.config`` is the sequence's config, a YAML file or a built-in's name (default: the built-in config of
+the ``dataset.path`` folder's kind, as ``mipslam bench SEQUENCE`` picks it, else ``tum``); config keys
+(``--set loop.KEY=...``) override it; ``loop_edges.synth_frames=N`` runs on a data_synth loop of N frames generated
+into OUT instead.
 """
 from __future__ import annotations
 
@@ -43,7 +44,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class Options:
-    config: str = ""  # the sequence's config (its dataset and loop sections); "" = configs/<kind>.yaml of dataset.path
+    config: str = ""  # the sequence's config (its dataset and loop sections); "" = the built-in <kind> of dataset.path
     gaps: tuple[int, ...] = (30, 60, 120)  # frames between the two frames of a pair
     first_every: int = 9  # a pair starts at every this many-th frame
     perturb_m: float = 0.02  # standard deviation per axis of the start's translation error (m)
