@@ -405,9 +405,10 @@ class MappingConfig:
     # the raw depth term then places the Gaussians about 1 / A - 1 too far; `fast` uses 0.98 (`mipslam bench --scenario tracking_bias`).
     initial_opacity: float = 0.5
     prune_opacity: float = 0.005
-    # New Gaussians also go where the sensor gave no depth, up to this many pixels from a measured one, at the depth
-    # grown from the measured pixels beside them (mipslam.gaussians.fill_depth_holes): a Kinect-type sensor leaves
-    # a quarter of its pixels (image borders, object edges, dark surfaces) without depth. 0 = only measured pixels.
+    # The final refinement first adds Gaussians where a keyframe's sensor gave no depth, up to this many pixels from a
+    # measured one, at the depth grown from the measured pixels beside them (mipslam.gaussians.fill_depth_holes): a
+    # Kinect-type sensor leaves a quarter of its pixels (image borders, object edges, dark surfaces) without depth,
+    # and a view renders them black. Tracking never sees them. 0 = only measured pixels.
     fill_depth_holes_px: int = 0
     prune_max_sigma_px: float = 50.0  # std-dev larger than this many pixels (seen from the keyframe) is absurd
     max_gaussians: int = 200_000
@@ -454,6 +455,7 @@ class RefineConfig:
     ssim_weight: float = 0.2  # weight of 1 - SSIM (3D Gaussian Splatting's 0.2)
     isotropy_weight: float = 0.0  # metres; thin structures need elongated Gaussians
     lr_poses: float = 0.0  # Adam rate of the keyframe poses (m, rad); 0 keeps them fixed
+    lambda_freq: float | None = None  # weight of the frequency-domain loss; None: mapping.lambda_freq
     # Gradient-driven densification (3D Gaussian Splatting's clone and split): a Gaussian whose mean view-space
     # gradient (normalised device units; 3DGS's 2e-4) exceeds this is cloned or split every 100 steps; 0 = off
     densify_grad: float = 0.0

@@ -141,22 +141,39 @@ class Mapper:
         depth d metres becomes a Gaussian at ``T_wc K^-1 d (u, v, 1)`` (world, metres) with std-dev
         ``initial_scale_factor * stride * d / f`` metres. ``frame_index`` is recorded as its creation frame."""
         cfg = self.config
-        budget = cfg.max_gaussians - len(gmap)
-        if budget <= 0:
-            return 0
-        T_cw = se3_inverse(view.T_wc).to(gmap.dtype)
-        depth = view.depth
-        if cfg.fill_depth_holes_px > 0:
-            depth = fill_depth_holes(view.depth, cfg.fill_depth_holes_px)
         if len(gmap) == 0:
-            mask = depth > 0
+            mask = view.depth > 0
         else:
-            out = render_view(gmap.activated(), T_cw, view.intrinsics, self.render_config, normalized_depth=True)
+            out = render_view(gmap.activated(), se3_inverse(view.T_wc).to(gmap.dtype), view.intrinsics,
+                              self.render_config, normalized_depth=True)
             mask = densify_pixel_mask(out.alpha, out.depth_normalized, view.depth,
                                       opacity_threshold=cfg.add_opacity_threshold,
                                       depth_error_ratio=cfg.add_depth_error_ratio)
-            # pixels without a measurement: only where the map renders them transparent (no depth test there)
-            mask |= (view.depth <= 0) & (depth > 0) & (out.alpha < cfg.add_opacity_threshold)
+        return self._add_at_pixels(gmap, optimizer, view, view.depth, mask, frame_index)
+
+    @torch.no_grad()
+    def fill_holes(self, gmap: GaussianMap, optimizer: GaussianOptimizer, view: MappingView, frame_index: int) -> int:
+        """Add Gaussians where ``view`` has colour but no depth and the map renders it transparent, at the depth
+        grown from the measured pixels beside them (:func:`fill_depth_holes`, up to ``fill_depth_holes_px``);
+        returns how many were added. The final refinement calls it: tracking never sees these Gaussians, whose
+        depth is a guess."""
+        cfg = self.config
+        if cfg.fill_depth_holes_px == 0 or len(gmap) == 0:
+            return 0
+        depth = fill_depth_holes(view.depth, cfg.fill_depth_holes_px)
+        out = render_view(gmap.activated(), se3_inverse(view.T_wc).to(gmap.dtype), view.intrinsics,
+                          self.render_config)
+        mask = (view.depth <= 0) & (depth > 0) & (out.alpha < cfg.add_opacity_threshold)
+        return self._add_at_pixels(gmap, optimizer, view, depth, mask, frame_index)
+
+    def _add_at_pixels(self, gmap: GaussianMap, optimizer: GaussianOptimizer, view: MappingView,
+                       depth: torch.Tensor, mask: torch.Tensor, frame_index: int) -> int:
+        """One Gaussian per pixel of ``mask`` [H, W] on the ``densify_pixel_stride`` grid at ``depth`` [H, W]
+        metres, within the ``max_gaussians`` cap and away from existing centres (``add_min_distance_ratio``)."""
+        cfg = self.config
+        budget = cfg.max_gaussians - len(gmap)
+        if budget <= 0:
+            return 0
         stride = cfg.densify_pixel_stride
         grid = torch.zeros_like(mask)
         grid[::stride, ::stride] = True
@@ -344,7 +361,7 @@ def refine_after_correction(mapper: Mapper, state: "SLAMState", frames: "FrameCa
 def refine_map(mapper: Mapper, state: "SLAMState", frames: "FrameCache", options: RefineOptions) -> int:
     """The final refinement (mipslam/refinement.py): ``mapping.final_iterations`` steps of the refinement loss
     after the last frame, one keyframe per step, every keyframe once per pass in an order drawn from the run's
-    generator. Keyframe poses move only with ``options.lr_poses`` > 0; every frame then follows its keyframes
+    generator, on the keyframes' images as the camera recorded them (:meth:`Mapper.fill_holes` first). Keyframe poses move only with ``options.lr_poses`` > 0; every frame then follows its keyframes
     (:meth:`SLAMState.correct_keyframe_poses`, the map held where the refinement left it). Returns the steps taken
     (fewer if a loss turned non-finite; the map then keeps its last finite state)."""
     iterations, count = mapper.config.final_iterations, len(state.keyframe_frames)
@@ -352,10 +369,20 @@ def refine_map(mapper: Mapper, state: "SLAMState", frames: "FrameCache", options
         return 0
     keyframes = [RefineKeyframe(kf, state.keyframe_record(kf).index, state.keyframe_record(kf).T_wc,
                                 state.keyframe_record(kf).exposure) for kf in range(count)]
+    device = state.gaussian_map.device
 
     def load(keyframe: RefineKeyframe) -> KeyframeImage:
-        frame, _ = mapper.keyframe_images.get(frames, keyframe.frame_index)
-        return KeyframeImage(frame.color, frame.depth, frame.intrinsics)
+        # the image as the camera recorded it: what a view of the map is compared with (a rolling shutter's rows
+        # moved to one instant for tracking are a resampled image, and not what the camera saw)
+        frame = frames.sequence[keyframe.frame_index]
+        return KeyframeImage(frame.color.to(device), frame.depth.to(device), frame.intrinsics)
+
+    filled = 0
+    for keyframe in keyframes:
+        image = load(keyframe)
+        filled += mapper.fill_holes(state.gaussian_map, state.optimizer, MappingView(
+            keyframe.keyframe_id, image.color, image.depth, keyframe.T_wc, keyframe.exposure, image.intrinsics,
+            optimize_pose=False), keyframe.frame_index)
 
     refiner = KeyframeRefiner(state.gaussian_map, state.optimizer, keyframes, load, options, mapper.render_config,
                               state.generator, cache_size=max(count, mapper.config.keyframe_cache))
@@ -368,6 +395,7 @@ def refine_map(mapper: Mapper, state: "SLAMState", frames: "FrameCache", options
         state.correct_keyframe_poses(poses, move_map=False)
     if losses:
         n = min(count, len(losses))
-        log.info("final refinement: %d steps over %d keyframes; mean loss %.4f over the first %d steps, "
-                 "%.4f over the last %d", len(losses), count, sum(losses[:n]) / n, n, sum(losses[-n:]) / n, n)
+        log.info("final refinement: %d Gaussians where keyframes had no depth, %d steps over %d keyframes; mean loss "
+                 "%.4f over the first %d steps, %.4f over the last %d", filled, len(losses), count,
+                 sum(losses[:n]) / n, n, sum(losses[-n:]) / n, n)
     return len(losses)

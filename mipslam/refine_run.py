@@ -8,10 +8,9 @@ rates) and a generator seeded with ``run.seed``. The steps are those of the run'
 one keyframe per step, every keyframe once per pass; keyframe poses move only with ``refine.lr_poses > 0``).
 
 **Images.** ``resolution="mapping"`` trains on the keyframes as the run read them (its ``dataset`` section);
-``"native"`` reads the dataset with ``downscale`` 1 (the camera's own images and intrinsics). What of the frames'
-timing the run undid (a rolling shutter, ``dataset.rolling_shutter_readout_s``; depth at the colour instant,
-``tracking.align_depth_time``) is undone the same way, with the velocity of the run's own records
-(:func:`~mipslam.sensor_sync.recorded_velocity`), at either resolution.
+``"native"`` reads the dataset with ``downscale`` 1 (the camera's own images and intrinsics). Either way the images
+are those the camera recorded, as the run's final refinement reads them: what the run moved to one instant for
+tracking (a rolling shutter's rows) is a resampled image the evaluation never compares with.
 
 **Budget.** Refinement time (the steps' own wall time; evaluations and checkpoints excluded) and/or steps of this
 session, whichever is reached first (:data:`DEFAULT_MINUTES` when neither is given).
@@ -61,7 +60,6 @@ from mipslam.geometry import nearest_rigid
 from mipslam.io.run_folder import RefinedFolder, RunFolder, write_bytes_atomic, write_json_atomic
 from mipslam.refinement import KeyframeImage, KeyframeRefiner, RefineKeyframe, refine_options
 from mipslam.run_control import PROGRESS_LOG_S, ctrl_c_after_the_frame, resolve_device
-from mipslam.sensor_sync import SensorTiming, recorded_velocity, synchronised
 from mipslam.state import SLAMState
 
 log = logging.getLogger(__name__)
@@ -287,8 +285,9 @@ def _open_sequence(config: Config, resolution: str):
     return make_sequence(cfg)
 
 
-def _keyframe_loader(sequence, state: SLAMState, timing: SensorTiming, device: torch.device, keyframes):
-    """``load(keyframe)`` for the refiner: the keyframe's frame, moved to its colour instant as the run moved it."""
+def _keyframe_loader(sequence, state: SLAMState, device: torch.device, keyframes):
+    """``load(keyframe)`` for the refiner: the keyframe's frame as the camera recorded it (as the run's final
+    refinement reads it: :func:`mipslam.mapping.refine_map`)."""
     stamps = sequence.timestamps
     for keyframe in keyframes:
         record = state.frames[state.keyframe_frames[keyframe.keyframe_id]]
@@ -299,8 +298,6 @@ def _keyframe_loader(sequence, state: SLAMState, timing: SensorTiming, device: t
 
     def load(keyframe: RefineKeyframe) -> KeyframeImage:
         frame = sequence[keyframe.frame_index]
-        if timing.moves(frame):
-            frame = synchronised(frame, recorded_velocity(state, frame), timing)
         return KeyframeImage(frame.color.to(device), frame.depth.to(device), frame.intrinsics)
 
     return load
@@ -526,10 +523,9 @@ def refine_run(run_dir: str | Path, request: RefineRequest = RefineRequest()) ->
     optimizer = GaussianOptimizer.from_config(gmap, config.mapping)
     generator = torch.Generator(device="cpu")
     generator.manual_seed(config.run.seed)
-    timing = SensorTiming(config.tracking.align_depth_time, config.dataset.rolling_shutter_readout_s)
     intrinsics = sequence.intrinsics
     image_size = (intrinsics.width, intrinsics.height)
-    load = _keyframe_loader(sequence, start.state, timing, device, start.keyframes)
+    load = _keyframe_loader(sequence, start.state, device, start.keyframes)
     refiner = KeyframeRefiner(gmap, optimizer, start.keyframes, load, refine_options(config), config.render, generator,
                               cache_size=_image_cache_size(*image_size, len(start.keyframes)))
     progress = _Progress()

@@ -359,11 +359,13 @@ class KeyframeRefiner:
                                self._T_cw[position], intrinsics, self.render_config)
         return None if len(seen) == len(self.map) else seen
 
+
 def refine_options(config: Config) -> RefineOptions:
     """The refinement loss of the ``refine`` config section, with the mapping section's frequency loss and depth
     range."""
     cfg, mapping = config.refine, config.mapping
+    lambda_freq = mapping.lambda_freq if cfg.lambda_freq is None else cfg.lambda_freq
     return RefineOptions(alpha_color=cfg.alpha_color, ssim_weight=cfg.ssim_weight, isotropy_weight=cfg.isotropy_weight,
-                         lambda_freq=mapping.lambda_freq, freq_patch=mapping.freq_patch, freq_alpha=mapping.freq_alpha,
+                         lambda_freq=lambda_freq, freq_patch=mapping.freq_patch, freq_alpha=mapping.freq_alpha,
                          lr_poses=cfg.lr_poses, max_depth=mapping.max_depth, densify_grad=cfg.densify_grad,
                          prune_opacity=mapping.prune_opacity, max_gaussians=mapping.max_gaussians)
