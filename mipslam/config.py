@@ -405,17 +405,8 @@ class MappingConfig:
     # the raw depth term then places the Gaussians about 1 / A - 1 too far; `fast` uses 0.98 (`mipslam bench --scenario tracking_bias`).
     initial_opacity: float = 0.5
     prune_opacity: float = 0.005
-    # The final refinement first adds Gaussians where a keyframe's sensor gave no depth, up to this many pixels from a
-    # measured one, at the depth grown from the measured pixels beside them (mipslam.gaussians.fill_depth_holes): a
-    # Kinect-type sensor leaves a quarter of its pixels (image borders, object edges, dark surfaces) without depth,
-    # and a view renders them black. Tracking never sees them. 0 = only measured pixels.
-    fill_depth_holes_px: int = 0
     prune_max_sigma_px: float = 50.0  # std-dev larger than this many pixels (seen from the keyframe) is absurd
     max_gaussians: int = 200_000
-    # Steps of the mapping loss after the last frame, over every keyframe (each pass in a random order), poses
-    # fixed, no densification: a final refinement like MonoGS's colour refinement. Keyframes mapped early saw
-    # only their own mapping steps and a few random revisits; this evens that out. 0 = off.
-    final_iterations: int = 0
     # Depth term on the alpha-normalised rendered depth D / max(A, depth_alpha_floor): where the map's
     # opacity A < 1 the raw D = sum T a z is minimised by Gaussians 1 / A - 1 too far (docs/mapping.md).
     depth_normalise: bool = False
@@ -434,37 +425,27 @@ class MappingConfig:
         _check(self.keyframe_cache >= 0, "mapping.keyframe_cache", "must be >= 0 (0 = no cache)")
         _check(0 < self.depth_alpha_floor <= 1, "mapping.depth_alpha_floor", "must be in (0, 1]")
         _check(self.max_depth >= 0, "mapping.max_depth", "must be >= 0 metres (0 = no limit)")
-        _check(self.final_iterations >= 0, "mapping.final_iterations", "must be >= 0 (0 = off)")
         _check(self.max_gaussians >= 1, "mapping.max_gaussians", "must be >= 1")
         _check(self.freq_patch >= 2, "mapping.freq_patch", "must be >= 2")
         _check(self.lambda_freq >= 0, "mapping.lambda_freq", "must be >= 0")
         _check(self.densify_pixel_stride >= 1, "mapping.densify_pixel_stride", "must be >= 1")
         _check(0 < self.initial_opacity < 1, "mapping.initial_opacity", "must be in (0, 1)")
         _check(self.prune_max_sigma_px > 0, "mapping.prune_max_sigma_px", "must be positive")
-        _check(self.fill_depth_holes_px >= 0, "mapping.fill_depth_holes_px", "must be >= 0 pixels (0 = off)")
         _check(self.add_min_distance_ratio >= 0, "mapping.add_min_distance_ratio", "must be >= 0 (0 = off)")
         _check(self.initial_scale_factor > 0, "mapping.initial_scale_factor", "must be positive")
 
 
 @dataclass(frozen=True)
 class RefineConfig:
-    """The map refinement over every keyframe after the last frame (``mapping.final_iterations`` steps) and of
-    ``mipslam refine`` (mipslam/refinement.py; docs/mapping.md, "The final refinement")."""
+    """The final refinement of the map over every keyframe after the last frame, and the keyframe poses that
+    ``mipslam refine`` moves (mipslam/refinement.py; docs/mapping.md, "The final refinement")."""
 
-    alpha_color: float = 0.9  # colour L1 against depth L1: no frame tracks against the map any more
-    ssim_weight: float = 0.2  # weight of 1 - SSIM (3D Gaussian Splatting's 0.2)
-    isotropy_weight: float = 0.0  # metres; thin structures need elongated Gaussians
-    lr_poses: float = 0.0  # Adam rate of the keyframe poses (m, rad); 0 keeps them fixed
-    lambda_freq: float | None = None  # weight of the frequency-domain loss; None: mapping.lambda_freq
-    # Gradient-driven densification (3D Gaussian Splatting's clone and split): a Gaussian whose mean view-space
-    # gradient (normalised device units; 3DGS's 2e-4) exceeds this is cloned or split every 100 steps; 0 = off
-    densify_grad: float = 0.0
+    # passes over every keyframe after the last frame, in a random order (a pass at least 10 steps); 0 = none
+    passes: int = 0
+    lr_poses: float = 1.0e-4  # Adam rate of the keyframe poses in the refinement (m, rad); 0 keeps them fixed
 
     def __post_init__(self):
-        _check(self.densify_grad >= 0, "refine.densify_grad", "must be >= 0 (0 = off)")
-        _check(0 <= self.alpha_color <= 1, "refine.alpha_color", "must be in [0, 1]")
-        _check(self.ssim_weight >= 0, "refine.ssim_weight", "must be >= 0")
-        _check(self.isotropy_weight >= 0, "refine.isotropy_weight", "must be >= 0")
+        _check(self.passes >= 0, "refine.passes", "must be >= 0 (0 = no final refinement)")
         _check(self.lr_poses >= 0, "refine.lr_poses", "must be >= 0 (0 = poses fixed)")
 
 
@@ -682,6 +663,8 @@ RETIRED_KEYS = {
     "render.eaa_point_area": "retired: EAA's 1-node threshold is now 'render.eaa_single_node_sigma' "
                              "(minor-axis std-dev in px, default 1.0; docs/renderer.md 2.2); delete the line or "
                              "set the new key",
+    "mapping.final_iterations": "retired: the final refinement is now 'refine.passes' (passes over every keyframe, "
+                                "a pass at least 10 steps; docs/mapping.md); delete the line or set the new key",
 }
 
 

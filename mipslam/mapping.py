@@ -18,8 +18,9 @@ On each keyframe (docs/design.md "Losses" and "Model only what a scene requires"
    covers the whole map;
 3. prune Gaussians with negligible opacity, non-finite values or an absurd size, and enforce the cap.
 
-After the last frame, :func:`refine_map` takes ``final_iterations`` steps of the refinement loss over all
-keyframes (mipslam/refinement.py; the pipeline's final refinement).
+After the last frame, :func:`refine_map` fills the keyframes' depth holes (:meth:`Mapper.fill_holes`) and takes
+``refine.passes`` passes of the refinement loss over all keyframes (mipslam/refinement.py; the pipeline's final
+refinement).
 
 The stage's steps in the frame loop read and update the :class:`~mipslam.state.SLAMState`:
 :func:`map_keyframe` (a new keyframe), :func:`refine_after_correction` (after a loop correction) and
@@ -54,9 +55,13 @@ from mipslam.geometry.se3 import se3_exp, se3_inverse
 from mipslam.losses.frequency import frequency_loss
 from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, coverage_loss, rgbd_l1_loss, rgbd_masks
 from mipslam.losses.regularizers import isotropy_loss
-from mipslam.refinement import KeyframeImage, KeyframeRefiner, RefineKeyframe, RefineOptions
+from mipslam.refinement import KeyframeImage, KeyframeRefiner, RefineKeyframe, RefineOptions, final_refinement_steps
 from mipslam.rendering import frustum_indices, render_view, view_sampling_rates
 from mipslam.types import Intrinsics
+
+# The final refinement fills a keyframe's missing depth up to this fraction of the image width from a measured pixel
+# (Kinect-type sensors leave image borders and object edges without depth; 16 px at 320 px wide)
+FILL_HOLES_WIDTH_RATIO = 0.05
 
 if TYPE_CHECKING:
     from mipslam.datasets import FrameCache
@@ -154,13 +159,14 @@ class Mapper:
     @torch.no_grad()
     def fill_holes(self, gmap: GaussianMap, optimizer: GaussianOptimizer, view: MappingView, frame_index: int) -> int:
         """Add Gaussians where ``view`` has colour but no depth and the map renders it transparent, at the depth
-        grown from the measured pixels beside them (:func:`fill_depth_holes`, up to ``fill_depth_holes_px``);
+        grown from the measured pixels beside them (:func:`fill_depth_holes`, up to ``FILL_HOLES_WIDTH_RATIO`` of the
+        image width away);
         returns how many were added. The final refinement calls it: tracking never sees these Gaussians, whose
         depth is a guess."""
         cfg = self.config
-        if cfg.fill_depth_holes_px == 0 or len(gmap) == 0:
+        if len(gmap) == 0:
             return 0
-        depth = fill_depth_holes(view.depth, cfg.fill_depth_holes_px)
+        depth = fill_depth_holes(view.depth, max(1, round(FILL_HOLES_WIDTH_RATIO * view.depth.shape[1])))
         out = render_view(gmap.activated(), se3_inverse(view.T_wc).to(gmap.dtype), view.intrinsics,
                           self.render_config)
         mask = (view.depth <= 0) & (depth > 0) & (out.alpha < cfg.add_opacity_threshold)
@@ -358,14 +364,17 @@ def refine_after_correction(mapper: Mapper, state: "SLAMState", frames: "FrameCa
     return iterations
 
 
-def refine_map(mapper: Mapper, state: "SLAMState", frames: "FrameCache", options: RefineOptions) -> int:
-    """The final refinement (mipslam/refinement.py): ``mapping.final_iterations`` steps of the refinement loss
-    after the last frame, one keyframe per step, every keyframe once per pass in an order drawn from the run's
-    generator, on the keyframes' images as the camera recorded them (:meth:`Mapper.fill_holes` first). Keyframe poses move only with ``options.lr_poses`` > 0; every frame then follows its keyframes
+def refine_map(mapper: Mapper, state: "SLAMState", frames: "FrameCache", options: RefineOptions,
+               passes: int) -> int:
+    """The final refinement (mipslam/refinement.py) after the last frame: ``passes`` passes of the refinement loss
+    (:func:`final_refinement_steps`), one keyframe per step, every keyframe once per pass in an order drawn from
+    the run's generator, on the keyframes' images as the camera recorded them (:meth:`Mapper.fill_holes` first).
+    Keyframe poses move only with ``options.lr_poses`` > 0; every frame then follows its keyframes
     (:meth:`SLAMState.correct_keyframe_poses`, the map held where the refinement left it). Returns the steps taken
     (fewer if a loss turned non-finite; the map then keeps its last finite state)."""
-    iterations, count = mapper.config.final_iterations, len(state.keyframe_frames)
-    if iterations == 0 or count == 0:
+    count = len(state.keyframe_frames)
+    iterations = final_refinement_steps(passes, count)
+    if iterations == 0:
         return 0
     keyframes = [RefineKeyframe(kf, state.keyframe_record(kf).index, state.keyframe_record(kf).T_wc,
                                 state.keyframe_record(kf).exposure) for kf in range(count)]

@@ -178,9 +178,9 @@ def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evalu
     write_checkpoint(run.folder, state, config, observer)
     # The refinement shapes this session's outputs, not the checkpoint: a run resumed to go further starts from
     # the state the frames left (as an uninterrupted run would), and resuming a finished run repeats it exactly.
-    if config.mapping.final_iterations and len(state.gaussian_map):
+    if config.refine.passes and len(state.gaussian_map):
         with observer.stage("refine"):
-            refine_map(stages.mapper, state, stages.frames, refine_options(config))
+            refine_map(stages.mapper, state, stages.frames, refine_options(config), config.refine.passes)
     metrics = _write_outputs(run, config, evaluate)
     return RunSummary(run.folder.root, state.next_frame, len(state.keyframe_frames),
                       sum(not f.tracked for f in state.frames), len(state.gaussian_map),

@@ -16,25 +16,24 @@ pass in an order drawn from the run's generator, so every keyframe gets the same
 """
 from __future__ import annotations
 
-import math
 from collections import OrderedDict
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import torch
 
 from mipslam.config import Config, RenderConfig
-from mipslam.gaussians import GaussianMap, GaussianOptimizer, GaussianParameters
-from mipslam.geometry.se3 import quat_wxyz_to_rotmat, se3_exp, se3_inverse
+from mipslam.gaussians import GaussianMap, GaussianOptimizer
+from mipslam.geometry.se3 import se3_exp, se3_inverse
 from mipslam.losses.frequency import frequency_loss
 from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, rgbd_l1_loss, rgbd_masks
 from mipslam.losses.regularizers import isotropy_loss
 from mipslam.losses.structural import SSIMTargetCache, ssim_loss
-from mipslam.render import RenderOutput
 from mipslam.rendering import frustum_indices, render_view
 from mipslam.types import Intrinsics
 
-SPLIT_SHRINK = 1.6  # a split Gaussian's two halves take 1/1.6 of its std-devs (3D Gaussian Splatting)
+
+MIN_STEPS_PER_PASS = 10  # a run's final refinement: one pass is at least this many steps
 
 
 @dataclass(frozen=True)
@@ -42,47 +41,29 @@ class RefineOptions:
     """The refinement loss and what it may move (module docstring).
 
     alpha_color      weight of the colour L1 against the depth L1 (mapping keeps depth strong for tracking)
-    ssim_weight      weight of 1 - SSIM (3DGS: 0.2)
+    ssim_weight      weight of 1 - SSIM (3DGS: 0.2; 0.4 gave lower LPIPS on the real sequences, docs/bench.md)
     isotropy_weight  weight of the isotropy regulariser (metres): thin structures need elongated Gaussians
-    lambda_freq      weight of the frequency-domain loss (mapping.lambda_freq; docs/design.md "Losses"); freq_patch px,
-                     freq_alpha its focal exponent
+    lambda_freq      weight of the frequency-domain loss (docs/design.md "Losses"; off: it raised LPIPS on real
+                     sequences once D-SSIM is in the loss, docs/bench.md); freq_patch px, freq_alpha its exponent
     lr_poses         Adam rate of the keyframe poses (m, rad per step); 0 keeps them fixed
     max_depth        metres; observed depth beyond it leaves the depth term (0 = no limit)
-    densify_grad     gradient-driven densification (3D Gaussian Splatting's clone and split): every
-                     ``densify_every`` steps, each Gaussian whose mean view-space gradient ``|dL/d mean2d|`` in
-                     normalised device units (pixels x (W/2, H/2), so resolution does not change it; 3DGS's 2e-4)
-                     exceeds this is cloned (std-dev at most ``split_sigma_px`` px in the views that saw it) or
-                     split in two at 1/1.6 of its size (larger); 0 = off
-    split_sigma_px   the std-dev (px, mean over the views) above which a selected Gaussian is split, not cloned
-    prune_opacity    at each densification, Gaussians below this opacity are removed
-    max_gaussians    densification never grows the map beyond this many Gaussians
     """
 
     alpha_color: float = 0.9
-    ssim_weight: float = 0.2
+    ssim_weight: float = 0.4
     isotropy_weight: float = 0.0
     lambda_freq: float = 0.0
     freq_patch: int = 16
     freq_alpha: float = 1.0
     lr_poses: float = 0.0
     max_depth: float = 0.0
-    densify_grad: float = 0.0
-    densify_every: int = 100
-    split_sigma_px: float = 2.0
-    prune_opacity: float = 0.005
-    max_gaussians: int = 200_000
 
     def __post_init__(self):
         problems = [name for name, ok in (("alpha_color", 0 <= self.alpha_color <= 1),
                                           ("ssim_weight", self.ssim_weight >= 0),
                                           ("isotropy_weight", self.isotropy_weight >= 0),
                                           ("lambda_freq", self.lambda_freq >= 0), ("freq_patch", self.freq_patch >= 2),
-                                          ("lr_poses", self.lr_poses >= 0), ("max_depth", self.max_depth >= 0),
-                                          ("densify_grad", self.densify_grad >= 0),
-                                          ("densify_every", self.densify_every >= 1),
-                                          ("split_sigma_px", self.split_sigma_px > 0),
-                                          ("prune_opacity", 0 <= self.prune_opacity < 1),
-                                          ("max_gaussians", self.max_gaussians >= 1))
+                                          ("lr_poses", self.lr_poses >= 0), ("max_depth", self.max_depth >= 0))
                     if not ok]
         if problems:
             raise ValueError(f"RefineOptions: {', '.join(problems)} out of range")
@@ -136,8 +117,6 @@ class KeyframeRefiner:
                                        requires_grad=optimise_poses)
         self._pose_optimizer = torch.optim.Adam([self.pose_deltas], lr=options.lr_poses) if optimise_poses else None
         self._T_cw = [se3_inverse(k.T_wc.to(torch.float64)).to(device=device, dtype=dtype) for k in self.keyframes]
-        self.densified = self.pruned = 0
-        self._reset_gradient_statistics()
 
     # ------------------------------------------------------------------ queries
 
@@ -181,33 +160,26 @@ class KeyframeRefiner:
             T_cw = se3_exp(self.pose_deltas[position]) @ T_cw
         exposure = self.keyframes[position].exposure.to(self.map.device)
         rows = self._frustum_rows(position, image.intrinsics)
-        loss, out = self.loss(image, masks, T_cw, exposure, rows, keep_view_gradient=self.options.densify_grad > 0)
+        loss = self.loss(image, masks, T_cw, exposure, rows)
         if not torch.isfinite(loss):
             return None
         self.optimizer.zero_grad()
         if self._pose_optimizer is not None:
             self._pose_optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        if self.options.densify_grad > 0:
-            self._accumulate_view_gradients(out, rows, image.intrinsics)
         self.optimizer.step()
         if self._pose_optimizer is not None:
             self._pose_optimizer.step()
         self.steps += 1
-        if self.options.densify_grad > 0 and self.steps % self.options.densify_every == 0:
-            self.densify_and_prune()
         return float(loss.detach())
 
     def loss(self, image: KeyframeImage, masks: RGBDMasks, T_cw: torch.Tensor, exposure: torch.Tensor,
-             rows: torch.Tensor | None, *, keep_view_gradient: bool = False) -> tuple[torch.Tensor, RenderOutput]:
+             rows: torch.Tensor | None) -> torch.Tensor:
         """The refinement loss of one keyframe (module docstring) rendered from ``T_cw`` [4, 4] (world-to-camera)
-        with the Gaussians ``rows`` [M] int64 (None: all): (scalar tensor, the render). ``keep_view_gradient``:
-        the render's ``means2d`` keeps its gradient after backward (densification)."""
+        with the Gaussians ``rows`` [M] int64 (None: all): a scalar tensor."""
         cfg = self.options
         g = self.map.activated(rows)
         out = render_view(g, T_cw, image.intrinsics, self.render_config)
-        if keep_view_gradient:
-            out.means2d.retain_grad()
         color = apply_affine_exposure(out.color, exposure[0], exposure[1])  # [H, W, 3]
         loss = rgbd_l1_loss(color, out.depth, image.color, image.depth, alpha_color=cfg.alpha_color,
                             masks=masks).total
@@ -218,75 +190,7 @@ class KeyframeRefiner:
                                                            alpha=cfg.freq_alpha, mask=masks.color)
         if cfg.isotropy_weight > 0:
             loss = loss + cfg.isotropy_weight * isotropy_loss(g.scales)
-        return loss, out
-
-    # ------------------------------------------------------------------ densification (3D Gaussian Splatting)
-
-    def _reset_gradient_statistics(self) -> None:
-        """Per Gaussian [N] float64: summed view-space gradient norm (NDC units), summed std-dev in px and the
-        number of views that drew it, since the last densification."""
-        size, device = len(self.map), self.map.device
-        self._gradient_sum = torch.zeros(size, dtype=torch.float64, device=device)
-        self._sigma_sum = torch.zeros(size, dtype=torch.float64, device=device)
-        self._views = torch.zeros(size, dtype=torch.float64, device=device)
-
-    @torch.no_grad()
-    def _accumulate_view_gradients(self, out: RenderOutput, rows: torch.Tensor | None, intrinsics: Intrinsics) -> None:
-        grad = out.means2d.grad  # [M, 2] dL/d(pixel)
-        if grad is None:
-            return
-        ndc = grad.to(torch.float64) * grad.new_tensor([intrinsics.width / 2.0, intrinsics.height / 2.0],
-                                                       dtype=torch.float64)
-        visible = out.visible
-        norm = torch.where(visible, ndc.norm(dim=-1), torch.zeros_like(ndc[:, 0]))
-        sigma = torch.where(visible, out.radii.to(torch.float64) / self.render_config.eaa_k_sigma,
-                            torch.zeros_like(norm))
-        index = rows if rows is not None else torch.arange(len(self.map), device=norm.device)
-        self._gradient_sum.index_add_(0, index, norm)
-        self._sigma_sum.index_add_(0, index, sigma)
-        self._views.index_add_(0, index, visible.to(torch.float64))
-
-    @torch.no_grad()
-    def densify_and_prune(self) -> tuple[int, int]:
-        """Clone or split the Gaussians whose mean view-space gradient exceeds ``densify_grad`` (within
-        ``max_gaussians``, the largest gradients first), then remove those below ``prune_opacity``. Returns
-        (added, removed) and resets the gradient statistics."""
-        cfg, gmap = self.options, self.map
-        seen = self._views > 0
-        mean_gradient = torch.where(seen, self._gradient_sum / self._views.clamp_min(1), torch.zeros_like(self._views))
-        selected = seen & (mean_gradient > cfg.densify_grad)
-        budget = cfg.max_gaussians - len(gmap)
-        chosen = torch.nonzero(selected).squeeze(1)
-        large = (self._sigma_sum / self._views.clamp_min(1)) > cfg.split_sigma_px
-        # a split adds one Gaussian net, a clone one: keep the strongest gradients within the budget
-        if len(chosen) > max(0, budget):
-            order = torch.argsort(mean_gradient[chosen], descending=True, stable=True)
-            chosen = chosen[order[:max(0, budget)]]
-        split = torch.zeros_like(selected)
-        split[chosen] = large[chosen]
-        clone = torch.zeros_like(selected)
-        clone[chosen] = ~large[chosen]
-        params = gmap.detached()
-        new = [params.subset(clone)]
-        if bool(split.any()):
-            parent = params.subset(split)
-            scales = torch.exp(parent.log_scales)  # [S, 3]
-            rotation = quat_wxyz_to_rotmat(parent.quats_wxyz / parent.quats_wxyz.norm(dim=-1, keepdim=True))
-            for _ in range(2):
-                offset = (rotation @ (torch.randn(scales.shape, generator=self.generator, dtype=scales.dtype)
-                                      .to(scales.device) * scales).unsqueeze(-1)).squeeze(-1)
-                new.append(replace(parent, means=parent.means + offset,
-                                   log_scales=parent.log_scales - math.log(SPLIT_SHRINK)))
-        added = GaussianParameters.concatenate(new)
-        gmap.add(added, self.optimizer)
-        removed = gmap.remove(torch.cat([split, torch.zeros(len(added), dtype=torch.bool, device=split.device)]),
-                              self.optimizer)
-        opacities = torch.sigmoid(gmap.opacity_logits)
-        pruned = gmap.remove(~torch.isfinite(opacities) | (opacities < cfg.prune_opacity), self.optimizer)
-        self.densified += len(added) - removed
-        self.pruned += pruned
-        self._reset_gradient_statistics()
-        return len(added) - removed, pruned
+        return loss
 
     # ------------------------------------------------------------------ state (resume)
 
@@ -296,9 +200,7 @@ class KeyframeRefiner:
         Adam moments."""
         state = {"steps": torch.tensor(self.steps, dtype=torch.int64),
                  "pending": torch.tensor(self._pending, dtype=torch.int64),
-                 "pose_deltas": self.pose_deltas.detach().cpu().clone(),
-                 "gradient_sum": self._gradient_sum.cpu().clone(), "sigma_sum": self._sigma_sum.cpu().clone(),
-                 "views": self._views.cpu().clone()}
+                 "pose_deltas": self.pose_deltas.detach().cpu().clone()}
         if self._pose_optimizer is not None:
             moments = self._pose_optimizer.state.get(self.pose_deltas)
             if moments:
@@ -313,16 +215,8 @@ class KeyframeRefiner:
         if tuple(deltas.shape) != tuple(self.pose_deltas.shape):
             raise ValueError(f"refinement state holds {deltas.shape[0]} keyframe poses, this refinement has "
                              f"{len(self.keyframes)}")
-        if "views" in state and len(state["views"]) != len(self.map):
-            raise ValueError(f"refinement state holds gradient statistics of {len(state['views'])} Gaussians, the "
-                             f"map has {len(self.map)}")
         self.steps = int(state["steps"])
         self._pending = [int(v) for v in state["pending"].tolist()]
-        if "views" in state:
-            device = self.map.device
-            self._gradient_sum = state["gradient_sum"].to(device=device, dtype=torch.float64).clone()
-            self._sigma_sum = state["sigma_sum"].to(device=device, dtype=torch.float64).clone()
-            self._views = state["views"].to(device=device, dtype=torch.float64).clone()
         with torch.no_grad():
             self.pose_deltas.copy_(deltas.to(self.pose_deltas))
         if self._pose_optimizer is not None and "pose_step" in state:
@@ -361,11 +255,12 @@ class KeyframeRefiner:
 
 
 def refine_options(config: Config) -> RefineOptions:
-    """The refinement loss of the ``refine`` config section, with the mapping section's frequency loss and depth
-    range."""
-    cfg, mapping = config.refine, config.mapping
-    lambda_freq = mapping.lambda_freq if cfg.lambda_freq is None else cfg.lambda_freq
-    return RefineOptions(alpha_color=cfg.alpha_color, ssim_weight=cfg.ssim_weight, isotropy_weight=cfg.isotropy_weight,
-                         lambda_freq=lambda_freq, freq_patch=mapping.freq_patch, freq_alpha=mapping.freq_alpha,
-                         lr_poses=cfg.lr_poses, max_depth=mapping.max_depth, densify_grad=cfg.densify_grad,
-                         prune_opacity=mapping.prune_opacity, max_gaussians=mapping.max_gaussians)
+    """The refinement of the ``refine`` config section (keyframe poses' rate) with the mapping section's depth
+    range; the loss weights are this module's (docs/mapping.md, "The final refinement")."""
+    return RefineOptions(lr_poses=config.refine.lr_poses, max_depth=config.mapping.max_depth)
+
+
+def final_refinement_steps(passes: int, keyframes: int) -> int:
+    """Steps of a run's final refinement: ``passes`` over the keyframes, a pass at least
+    ``MIN_STEPS_PER_PASS`` steps (a short clip's one or two keyframes are otherwise under-fitted)."""
+    return passes * max(keyframes, MIN_STEPS_PER_PASS) if keyframes else 0

@@ -118,7 +118,7 @@ def test_console_script_runs_as_a_process(tmp_path):
 # ----------------------------------------------------------------------------- run folders: refuse, resume, replace
 
 # A few seconds per run on 2 cores: 6 frames of 40 x 30, few iterations, no final refinement.
-TINY = ["mapping.first_frame_iterations=20", "mapping.iterations=5", "mapping.final_iterations=0",
+TINY = ["mapping.first_frame_iterations=20", "mapping.iterations=5", "refine.passes=0",
         "mapping.densify_pixel_stride=2", "tracking.iterations=10", "keyframes.window_size=3",
         "keyframes.random_past=1", "run.threads=1"]
 

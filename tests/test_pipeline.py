@@ -66,7 +66,7 @@ def test_cli_synth_run_eval_smoke(tmp_path):
 
 # With a final refinement the first session refines its own outputs at frame 4; the continuation must start
 # from the state the frames left, not from that refined map.
-@pytest.mark.parametrize("extra", [(), ("mapping.final_iterations=10",)], ids=["plain", "final_refinement"])
+@pytest.mark.parametrize("extra", [(), ("refine.passes=2",)], ids=["plain", "final_refinement"])
 def test_resume_equals_uninterrupted_run(tiny_sequence, tmp_path, extra):
     full_dir, split_dir = tmp_path / "full", tmp_path / "split"
     run_slam(tiny_config(tiny_sequence, *extra), full_dir, evaluate=False)
@@ -89,7 +89,7 @@ def test_resume_equals_uninterrupted_run(tiny_sequence, tmp_path, extra):
 def test_final_refinement_keeps_the_trajectory_improves_the_map_and_repeats_exactly(tiny_sequence, tmp_path):
     plain_dir, refined_dir = tmp_path / "plain", tmp_path / "refined"
     run_slam(tiny_config(tiny_sequence, "eval.frames=keyframes"), plain_dir)
-    refined = tiny_config(tiny_sequence, "eval.frames=keyframes", "mapping.final_iterations=40")
+    refined = tiny_config(tiny_sequence, "eval.frames=keyframes", "refine.passes=4", "refine.lr_poses=0")
     run_slam(refined, refined_dir)
     np.testing.assert_array_equal(read_tum_trajectory(refined_dir / "traj_est.txt").T_wc,
                                   read_tum_trajectory(plain_dir / "traj_est.txt").T_wc)

@@ -23,7 +23,7 @@ rs = pytest.importorskip("pyrealsense2", reason="pyrealsense2 is not installed (
 # Small enough for a few seconds per run on 2 cores (as tests/test_pipeline.py).
 TINY = ["mapping.first_frame_iterations=30", "mapping.iterations=8", "mapping.densify_pixel_stride=2",
         "tracking.iterations=15", "keyframes.window_size=3", "keyframes.random_past=1", "run.threads=1",
-        "mapping.final_iterations=0"]
+        "refine.passes=0"]
 DEPTH_UNITS = 0.001  # metres per z16 step, as a D400 camera reports
 
 

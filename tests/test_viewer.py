@@ -26,7 +26,7 @@ from mipslam.viewer.snapshot import (Headline, Splats, aligned_ate_rmse, matrix_
 REPO = Path(__file__).resolve().parent.parent
 TINY = ["mapping.first_frame_iterations=30", "mapping.iterations=8", "mapping.densify_pixel_stride=2",
         "tracking.iterations=15", "keyframes.window_size=3", "keyframes.random_past=1", "run.threads=1",
-        "mapping.final_iterations=0"]
+        "refine.passes=0"]
 
 
 def _random_rotations(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
