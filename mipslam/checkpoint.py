@@ -17,7 +17,7 @@ File layout (all integers little endian)::
 Writing (:func:`write_checkpoint`) goes through :func:`mipslam.io.run_folder.atomic_write`:
 temporary file in the same folder, fsync of file and folder, rename. :func:`save_checkpoint`
 numbers checkpoints ``checkpoint-000001.ckpt``, ``-000002``, ... and deletes the oldest only
-after the new one is complete, keeping ``keep`` of them (``run.keep_checkpoints``).
+after the new one is complete, keeping ``keep`` of them (``mipslam.run_control.KEEP_CHECKPOINTS``).
 :func:`load_latest_checkpoint` verifies the checksum of the newest; a corrupt or truncated one
 is reported with a warning and the previous good one is used.
 
@@ -62,14 +62,10 @@ MAX_HEADER_BYTES = 256 * 1024 * 1024
 # An entry names a key or a whole section (every key below it).
 RESUME_FREE_KEYS: tuple[str, ...] = (
     "run.checkpoint_every",
-    "run.keep_checkpoints",
     "run.threads",
     "run.evaluate_at_end",
     "run.device",
-    "run.release_memory_every",
-    "run.mmap_threshold_kib",
     "run.diagnostics",
-    "run.keyframe_cache_mib",
     "dataset.max_frames",
     "eval",
 )
@@ -300,7 +296,7 @@ def save_checkpoint(folder: str | Path, tensors: Mapping[str, torch.Tensor], met
     Returns the new checkpoint's path.
     """
     if keep < 1:
-        raise CheckpointError(f"keep must be >= 1 (config run.keep_checkpoints), got {keep}")
+        raise CheckpointError(f"keep must be >= 1 (KEEP_CHECKPOINTS), got {keep}")
     folder = Path(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)

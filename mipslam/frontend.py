@@ -45,7 +45,8 @@ _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
 @dataclass(frozen=True)
 class FeatureOptions:
-    """Settings of feature extraction and pose estimation (the pipeline fills them from ``frontend``)."""
+    """The front-end's constants: feature extraction, matching, pose estimation, relocalisation (the
+    ``frontend`` config section only chooses the method)."""
 
     num_features: int = 1000  # ORB keypoints per frame
     pyramid_levels: int = 4  # ORB scale pyramid levels (factor 1.2 each)
@@ -62,6 +63,7 @@ class FeatureOptions:
     max_prior_jump_deg: float = 30.0
     min_depth_m: float = 0.1  # depth outside [min, max] does not give a 3D point
     max_depth_m: float = 8.0
+    relocalise_keyframes: int = 8  # a frame whose tracking failed is matched to this many newest keyframes
 
 
 @dataclass(frozen=True)
@@ -377,26 +379,16 @@ class FrontendStart:
     reason: str = ""
 
 
-def feature_options(config: FrontendConfig) -> FeatureOptions:
-    """The :class:`FeatureOptions` of a ``frontend`` config section."""
-    return FeatureOptions(num_features=config.num_features, pyramid_levels=config.pyramid_levels,
-                          fast_threshold=config.fast_threshold, ratio_test=config.ratio_test,
-                          guided_radius=config.guided_radius,
-                          max_hamming=config.max_hamming, ransac_reprojection_px=config.ransac_reprojection_px,
-                          ransac_iterations=config.ransac_iterations, min_inliers=config.min_inliers,
-                          min_inlier_ratio=config.min_inlier_ratio)
-
-
 class Frontend:
-    """Feature front-end of tracking (reads only the ``frontend`` config section).
+    """Feature front-end of tracking: the ``frontend`` config section's method with the options' constants.
 
     ``cache_frames``: how many frames' features are kept (the previous frame and the keyframes tried
     for relocalisation); a miss recomputes them from the frame, which gives the same values.
     """
 
-    def __init__(self, config: FrontendConfig, cache_frames: int = 32):
+    def __init__(self, config: FrontendConfig, options: FeatureOptions = FeatureOptions(), cache_frames: int = 32):
         self.config = config
-        self.options = feature_options(config)
+        self.options = options
         self.cache_frames = max(2, cache_frames)
         self._features: OrderedDict[int, FrameFeatures] = OrderedDict()
 
@@ -451,7 +443,7 @@ class Frontend:
             return None
         current = self.features(frame)
         best: FrontendStart | None = None
-        for keyframe, T_wc_keyframe in keyframes[: self.config.relocalise_keyframes]:
+        for keyframe, T_wc_keyframe in keyframes[: self.options.relocalise_keyframes]:
             prior = None if prediction is None else torch.linalg.inv(T_wc_keyframe.to(torch.float64)) @ prediction
             relative = estimate_relative_pose(self.features(keyframe), current, frame.intrinsics, self.options, prior)
             if relative.ok and (best is None or relative.inliers > best.inliers):

@@ -11,8 +11,7 @@ on ``free``) only above a threshold that it raises after every large free, up to
 tensors soon all come from the heap and fragment it. A fixed threshold keeps them out of the heap:
 at 64 KiB the heap stopped growing over the second lap of that run (docs/robustness.md, "Long runs", memory).
 The price is a page-faulting ``mmap``/``munmap`` pair for every large tensor: 11 % fewer frames/s
-on the 160x120 ``fast`` benchmark, so the pipeline applies it only where ``run.mmap_threshold_kib``
-asks for it.
+on the 160x120 ``fast`` benchmark, so the pipeline does not apply it (a long-run measurement may).
 
 On a C library without ``malloc_trim``/``mallopt`` (macOS, musl, Windows) both do nothing.
 """

@@ -9,7 +9,7 @@ of b, projects inside b's image, lands on a pixel with valid depth ``d_b`` and a
 in front of it (b saw free space there) are not covisible. The measure is asymmetric and is 1
 for a camera at rest.
 
-Keyframe rule (thresholds from ``mipslam.config.KeyframeConfig``): the first frame is a
+Keyframe rule (thresholds from :class:`KeyframeOptions`): the first frame is a
 keyframe; afterwards a frame is one when covisibility with the last keyframe drops below
 ``covisibility_threshold``, or the translation from the last keyframe exceeds
 ``translation_ratio`` times the scene's median depth (the last keyframe's median valid depth),
@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Mapping, Sequence
 
 import torch
 
-from mipslam.config import KeyframeConfig
+from mipslam.config import KeyframeConfig, section_options
 from mipslam.geometry.camera import project, unproject
 from mipslam.geometry.se3 import rotation_angle, se3_inverse, transform_points
 
@@ -43,9 +43,33 @@ if TYPE_CHECKING:
     from mipslam.state import FrameRecord, SLAMState
     from mipslam.types import Frame
 
-DEFAULT_DEPTH_TOLERANCE = KeyframeConfig.covisibility_depth_tolerance
-DEFAULT_PIXEL_STRIDE = KeyframeConfig.covisibility_pixel_stride
-DEFAULT_MIN_OVERLAP = KeyframeConfig.window_min_overlap
+
+
+@dataclass(frozen=True)
+class KeyframeOptions:
+    """The keyframe rule and window: the ``keyframes`` config section's keys (defaults there) and the
+    stage's constants (defined here). Built from the config by :meth:`from_config`."""
+
+    covisibility_threshold: float = KeyframeConfig.covisibility_threshold
+    window_size: int = KeyframeConfig.window_size
+    random_past: int = KeyframeConfig.random_past
+    min_map_coverage: float = KeyframeConfig.min_map_coverage
+    translation_ratio: float = 0.1  # a new keyframe when the translation > ratio * median scene depth ...
+    rotation_deg: float = 15.0  # ... or the rotation exceeds this
+    # Covisibility: a point is seen by both frames when their depths agree within this fraction, evaluated on
+    # every covisibility_pixel_stride-th pixel in u and v.
+    covisibility_depth_tolerance: float = 0.1
+    covisibility_pixel_stride: int = 4
+    window_min_overlap: float = 0.05  # window keyframes seeing less of the new keyframe than this leave
+
+    @classmethod
+    def from_config(cls, section: KeyframeConfig) -> "KeyframeOptions":
+        return section_options(cls, section)
+
+
+DEFAULT_DEPTH_TOLERANCE = KeyframeOptions.covisibility_depth_tolerance
+DEFAULT_PIXEL_STRIDE = KeyframeOptions.covisibility_pixel_stride
+DEFAULT_MIN_OVERLAP = KeyframeOptions.window_min_overlap
 
 
 def covisibility(
@@ -111,7 +135,7 @@ class KeyframeDecision:
 
 
 def decide_keyframe(
-    config: KeyframeConfig,
+    config: KeyframeOptions,
     depth: torch.Tensor,  # [H, W] metres
     T_wc: torch.Tensor,  # [4, 4]
     K: torch.Tensor,  # [3, 3]
@@ -197,7 +221,7 @@ def update_window(
 
 
 def update_window_from_config(window: Sequence[int], new_keyframe: int, overlap_with_new: Mapping[int, float],
-                              config: KeyframeConfig) -> WindowUpdate:
+                              config: KeyframeOptions) -> WindowUpdate:
     """:func:`update_window` with ``window_size`` and ``min_overlap`` from the config."""
     return update_window(window, new_keyframe, overlap_with_new, window_size=config.window_size,
                          min_overlap=config.window_min_overlap)
@@ -223,7 +247,7 @@ def select_random_past(
 
 # ----------------------------------------------------------------------------- the steps in the frame loop
 
-def keyframe_decision(config: KeyframeConfig, state: "SLAMState", frames: "FrameCache", frame: "Frame",
+def keyframe_decision(config: KeyframeOptions, state: "SLAMState", frames: "FrameCache", frame: "Frame",
                       T_wc: torch.Tensor, map_coverage: float = math.nan) -> KeyframeDecision:
     """Whether ``frame``, tracked at ``T_wc`` [4, 4] (camera-to-world) where the map covers ``map_coverage`` of
     its valid depth, becomes a keyframe: the rule of the module docstring against the last keyframe of
@@ -237,7 +261,7 @@ def keyframe_decision(config: KeyframeConfig, state: "SLAMState", frames: "Frame
                            keyframe.intrinsics.matrix(), map_coverage)
 
 
-def insert_keyframe(config: KeyframeConfig, state: "SLAMState", frames: "FrameCache",
+def insert_keyframe(config: KeyframeOptions, state: "SLAMState", frames: "FrameCache",
                     record: "FrameRecord") -> tuple[int, ...]:
     """Make ``record`` (the newest frame of ``state``) keyframe ``record.keyframe_id``: update the window by
     covisibility with the new keyframe and draw ``random_past`` older keyframes with the run's generator.

@@ -14,7 +14,7 @@ On each keyframe (docs/design.md "Losses" and "Model only what a scene requires"
    ``+ opacity_weight * mean(1 - A) + isotropy_weight * isotropy(scales) + lambda_freq * L_freq(I, I_gt)``
    (``A`` the rendered opacity over pixels with valid depth; with ``depth_normalise`` the depth term compares
    ``D / A`` and no longer raises opacity itself); each view renders the
-   Gaussians that can reach it from its starting pose (``render.frustum_margin``), the isotropy term
+   Gaussians that can reach it from its starting pose (``mipslam.rendering.FRUSTUM_MARGIN``), the isotropy term
    covers the whole map;
 3. prune Gaussians with negligible opacity, non-finite values or an absurd size, and enforce the cap.
 
@@ -33,11 +33,11 @@ import logging
 import math
 from collections import OrderedDict
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Iterable
+from typing import TYPE_CHECKING, Iterable, Literal
 
 import torch
 
-from mipslam.config import MappingConfig, RenderConfig
+from mipslam.config import MappingConfig, RenderConfig, section_options
 from mipslam.gaussians import (
     GaussianMap,
     GaussianOptimizer,
@@ -128,10 +128,55 @@ class KeyframeImages:
         return entry
 
 
-class Mapper:
-    """Maps keyframes (reads only the mapping and render config sections)."""
+@dataclass(frozen=True)
+class MappingOptions:
+    """Everything mapping reads: the ``mapping`` config section's keys (defaults there) and the stage's
+    constants (defined here; evidence in docs/mapping.md and docs/bench.md). Built by :meth:`from_config`."""
 
-    def __init__(self, config: MappingConfig, render_config: RenderConfig):
+    iterations: int = MappingConfig.iterations
+    first_frame_iterations: int = MappingConfig.first_frame_iterations
+    densify_pixel_stride: int = MappingConfig.densify_pixel_stride
+    max_gaussians: int = MappingConfig.max_gaussians
+    initial_scale_factor: float = MappingConfig.initial_scale_factor
+    initial_opacity: float = MappingConfig.initial_opacity
+    add_min_distance_ratio: float = MappingConfig.add_min_distance_ratio
+    lr_poses: float = MappingConfig.lr_poses
+    lambda_freq: float = MappingConfig.lambda_freq
+    freq_moves_geometry: Literal["final", "always"] = MappingConfig.freq_moves_geometry
+    # Adam rates of the map's parameters (GaussianOptimizer.from_config)
+    lr_means: float = 1e-3
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_opacities: float = 5e-2
+    lr_colors: float = 5e-3
+    alpha_color: float = 0.5  # weight of the colour L1 against the depth L1
+    isotropy_weight: float = 10.0
+    freq_patch: int = 16  # the frequency loss's patch (px) and exponent
+    freq_alpha: float = 1.0
+    add_opacity_threshold: float = 0.5  # pixels the map renders below this opacity get new Gaussians ...
+    add_depth_error_ratio: float = 10.0  # ... as do those whose depth error is above ratio * median error
+    prune_opacity: float = 0.005
+    prune_max_sigma_px: float = 50.0  # std-dev larger than this many pixels (seen from the keyframe) is absurd
+    # Depth term on the alpha-normalised rendered depth D / max(A, depth_alpha_floor): where the map's
+    # opacity A < 1 the raw D = sum T a z is minimised by Gaussians 1 / A - 1 too far (docs/mapping.md).
+    depth_normalise: bool = False
+    depth_alpha_floor: float = 0.5
+    max_depth: float = 0.0  # metres; observed depth beyond it stays out of the depth term (0 = no limit)
+    # Keyframe images (and loss masks) mapping keeps on the device, most recently used first, instead of reading
+    # them from disk again on every revisit; 0 = none. 64 at 320x240 is about 80 MB (docs/mapping.md).
+    keyframe_cache: int = 64
+    # Weight of mean(1 - A) over pixels with valid depth (0 = off): depth_normalise needs it to keep the map opaque.
+    opacity_weight: float = 0.0
+
+    @classmethod
+    def from_config(cls, section: MappingConfig) -> "MappingOptions":
+        return section_options(cls, section)
+
+
+class Mapper:
+    """Maps keyframes (its options and the render config section)."""
+
+    def __init__(self, config: MappingOptions, render_config: RenderConfig):
         self.config = config
         self.render_config = render_config
         self.keyframe_images = KeyframeImages(config.keyframe_cache, config.max_depth)

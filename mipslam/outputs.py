@@ -3,16 +3,18 @@ record, map, timings, loop closures and a description of the run. Every file is 
 from __future__ import annotations
 
 import math
+from dataclasses import asdict
 
 import numpy as np
 import torch
 
 from mipslam import __version__
-from mipslam.config import Config, config_to_dict
+from mipslam.config import Config
 from mipslam.datasets import RGBDSequence
 from mipslam.io.ply import write_map_ply
 from mipslam.io.run_folder import RunFolder, write_json_atomic
 from mipslam.io.tum import write_tum_trajectory
+from mipslam.loop.closer import LoopOptions
 from mipslam.render import available_backends
 from mipslam.state import SLAMState
 
@@ -87,7 +89,7 @@ def loop_summary(state: SLAMState, config: Config) -> dict:
     optimisations = log["optimisations"]
     return {
         "enabled": config.loop.enabled,
-        "settings": config_to_dict(config.loop),
+        "settings": asdict(LoopOptions.from_config(config.loop, depth_noise_power=config.dataset.depth_noise_power)),
         "columns": {
             "loops": "every candidate pair (older keyframe i, query keyframe j) and its final status; accepted = "
                      "a loop edge of the final pose graph",
@@ -97,7 +99,7 @@ def loop_summary(state: SLAMState, config: Config) -> dict:
                           "registration passed its checks the relative pose T_i^-1 T_k it measured and the one the "
                           "estimate held then (row-major 4x4)",
             "optimisations": "per keyframe that added loop edges disagreeing with the current poses (edges within "
-                             "loop.consistent_chi2 or loop.min_correction_m/_deg join the graph without one): graph "
+                             "LoopOptions.consistent_chi2 or min_correction_m/_deg join the graph without one): graph "
                              "size, cost before/after (robust, on the edges kept), LM iterations, pruned loop edges [i, j], final weight and chi2 of its new and pruned "
                              "loop edges, whether the correction was applied and why, largest keyframe correction, Gaussians "
                              "moved, refinement steps, with run.diagnostics the map PSNR at the loop's keyframes "

@@ -16,24 +16,28 @@ import logging
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable, Mapping
 
 import torch
 
-from mipslam.config import Config, KeyframeConfig
+from mipslam.config import Config
 from mipslam.datasets import FrameCache, RGBDSequence
 from mipslam.frontend import Frontend
 from mipslam.io.run_folder import write_json_atomic
-from mipslam.keyframes import insert_keyframe, keyframe_decision
-from mipslam.loop.closer import LoopCloser, VerificationHook, close_loops
-from mipslam.mapping import Mapper, map_keyframe, refine_map
+from mipslam.keyframes import KeyframeOptions, insert_keyframe, keyframe_decision
+from mipslam.loop.closer import LoopCloser, LoopOptions, VerificationHook, close_loops
+from mipslam.mapping import Mapper, MappingOptions, map_keyframe, refine_map
 from mipslam.refinement import refine_options
 from mipslam.observer import Observer
 from mipslam.run_control import FrameLoop, PreparedRun, RunSummary, prepare_run, resolve_device, write_checkpoint
 from mipslam.sensor_sync import SensorTiming, predicted_velocity, recorded_velocity, synchronised, tracked_velocity
 from mipslam.state import FrameRecord, SLAMState
-from mipslam.tracking import Tracker, TrackingResult, track_frame
+from mipslam.tracking import Tracker, TrackingOptions, TrackingResult, track_frame
 from mipslam.types import Frame
+
+# Keyframes' images kept in memory for mapping and loop verification (MiB; a 320x240 keyframe takes 1.2 MiB); the
+# others are read again from the sequence when needed.
+KEYFRAME_CACHE_MIB = 256
 
 log = logging.getLogger(__name__)
 
@@ -48,11 +52,20 @@ class PipelineHooks:
     after_tracking(frame index, tracking result, state) -> result: replaces a frame's tracking
         result before anything else sees it (e.g. a biased odometer that makes the run drift);
     loop_verification(candidate keyframe, query keyframe, result) -> result: replaces a loop
-        verification (e.g. a deliberately wrong loop edge).
+        verification (e.g. a deliberately wrong loop edge);
+    constants: stage constants replaced for an experiment, ``{"loop.min_keyframe_gap": 6}`` (a stage's options
+        field: TrackingOptions, MappingOptions, KeyframeOptions, LoopOptions), never config keys.
     """
 
     after_tracking: Callable[[int, TrackingResult, SLAMState], TrackingResult] | None = None
     loop_verification: VerificationHook | None = None
+    constants: Mapping[str, Any] = field(default_factory=dict)
+
+    def options(self, section: str, options: Any) -> Any:
+        """``options`` (a stage's options of config section ``section``) with this hook's constants for it."""
+        values = {key.split(".", 1)[1]: value for key, value in self.constants.items()
+                  if key.split(".", 1)[0] == section}
+        return replace(options, **values) if values else options
 
 
 @dataclass
@@ -63,7 +76,7 @@ class Stages:
 
     tracker: Tracker
     mapper: Mapper
-    keyframes: KeyframeConfig
+    keyframes: KeyframeOptions
     frames: FrameCache
     T_wc_first: torch.Tensor
     loop: LoopCloser | None = None
@@ -77,16 +90,21 @@ class Stages:
               observer: Observer | None = None) -> "Stages":
         hooks, observer = hooks or PipelineHooks(), observer or Observer()
         capacity = config.keyframes.window_size + config.keyframes.random_past + 2
-        loop = (LoopCloser(config.loop, verification_hook=hooks.loop_verification, observer=observer)
+        noise = config.dataset.depth_noise_power  # a property of the sensor that tracking and loop verification share
+        loop = (LoopCloser(hooks.options("loop", LoopOptions.from_config(config.loop, depth_noise_power=noise)),
+                           verification_hook=hooks.loop_verification, observer=observer)
                 if config.loop.enabled else None)
         observer.declare("read", "tracking", "keyframe", "mapping", *(("loop", "pgo") if loop is not None else ()))
         frames = FrameCache(sequence, device, capacity, read_ahead=sequence.random_access,
-                            kept_bytes=config.run.keyframe_cache_mib * 2**20)
+                            kept_bytes=KEYFRAME_CACHE_MIB * 2**20)
         observer.attach(frames)
         frontend = Frontend(config.frontend) if config.frontend.method != "none" else None
-        timing = SensorTiming(config.tracking.align_depth_time, config.dataset.rolling_shutter_readout_s)
-        return cls(Tracker(config.tracking, config.render), Mapper(config.mapping, config.render), config.keyframes,
-                   frames, first_pose(sequence), loop, observer, hooks, frontend, timing)
+        tracking = hooks.options("tracking", TrackingOptions.from_config(config.tracking, depth_noise_power=noise))
+        timing = SensorTiming(tracking.align_depth_time, config.dataset.rolling_shutter_readout_s)
+        mapping = hooks.options("mapping", MappingOptions.from_config(config.mapping))
+        return cls(Tracker(tracking, config.render), Mapper(mapping, config.render),
+                   hooks.options("keyframes", KeyframeOptions.from_config(config.keyframes)), frames, first_pose(sequence), loop, observer, hooks,
+                   frontend, timing)
 
 
 # ----------------------------------------------------------------------------- one frame

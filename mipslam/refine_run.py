@@ -59,6 +59,7 @@ from mipslam.gaussians import GaussianMap, GaussianOptimizer
 from mipslam.geometry import nearest_rigid
 from mipslam.io.run_folder import RefinedFolder, RunFolder, write_bytes_atomic, write_json_atomic
 from mipslam.refinement import KeyframeImage, KeyframeRefiner, RefineKeyframe, refine_options
+from mipslam.mapping import MappingOptions
 from mipslam.run_control import PROGRESS_LOG_S, ctrl_c_after_the_frame, resolve_device
 from mipslam.state import SLAMState
 
@@ -245,7 +246,8 @@ def _load_start(folder: RunFolder, config: Config) -> _Start:
     from mipslam.io.tum import read_tum_trajectory
 
     checkpoint = load_latest_checkpoint(folder.checkpoints)
-    state = SLAMState.from_checkpoint(checkpoint.tensors, checkpoint.metadata, config.mapping, torch.device("cpu"))
+    state = SLAMState.from_checkpoint(checkpoint.tensors, checkpoint.metadata, MappingOptions.from_config(config.mapping),
+                                      torch.device("cpu"))
     trajectory = read_tum_trajectory(folder.traj_est)
     if len(trajectory) != len(state.frames):
         raise MipslamError(f"{folder.traj_est}: {len(trajectory)} poses but the run's latest checkpoint "
@@ -520,7 +522,7 @@ def refine_run(run_dir: str | Path, request: RefineRequest = RefineRequest()) ->
         from mipslam.io.ply import read_map_ply
 
         gmap = read_map_ply(folder.map_ply, device=device)
-    optimizer = GaussianOptimizer.from_config(gmap, config.mapping)
+    optimizer = GaussianOptimizer.from_config(gmap, MappingOptions.from_config(config.mapping))
     generator = torch.Generator(device="cpu")
     generator.manual_seed(config.run.seed)
     intrinsics = sequence.intrinsics

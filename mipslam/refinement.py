@@ -255,9 +255,9 @@ class KeyframeRefiner:
 
 
 def refine_options(config: Config) -> RefineOptions:
-    """The refinement of the ``refine`` config section (keyframe poses' rate) with the mapping section's depth
-    range; the loss weights are this module's (docs/mapping.md, "The final refinement")."""
-    return RefineOptions(lr_poses=config.refine.lr_poses, max_depth=config.mapping.max_depth)
+    """The refinement of the ``refine`` config section (keyframe poses' rate); the loss weights and the depth
+    range are this module's (docs/mapping.md, "The final refinement")."""
+    return RefineOptions(lr_poses=config.refine.lr_poses)
 
 
 def final_refinement_steps(passes: int, keyframes: int) -> int:

@@ -2,7 +2,7 @@
 
 ``mipslam.render`` imports no config (pure functions on tensors); tracking, mapping and evaluation
 render through :func:`render_view`, which turns a :class:`~mipslam.config.RenderConfig` into the
-renderer's keyword options.
+renderer's keyword options (the renderer's constants are :class:`~mipslam.render.RenderOptions`' defaults).
 """
 from __future__ import annotations
 
@@ -12,13 +12,21 @@ from mipslam.config import RenderConfig
 from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry.camera import project, sampling_rate
 from mipslam.geometry.se3 import transform_points
-from mipslam.render import RenderOutput, rasterize, rasterize_pose_only
+from mipslam.render import RenderOptions, RenderOutput, rasterize, rasterize_pose_only
 from mipslam.types import Intrinsics
+
+
+# Strength s of the Mip-Splatting 3D filter (render.filter_3d): the paper's 0.2.
+FILTER_3D_SCALE = 0.2
+# Tracking and mapping render a view from the Gaussians that reach its image enlarged by this fraction of the
+# larger side, at the pose the view starts from (0.25: about 16 degrees of a 70-degree view, far beyond what one
+# optimisation moves a pose); the rest of the map cannot be drawn and is left out.
+FRUSTUM_MARGIN = 0.25
 
 
 def render_options(config: RenderConfig) -> dict:
     """Keyword options of :func:`mipslam.render.rasterize` for a render config."""
-    return {**config.renderer_options(), "filter_3d_scale": config.filter_3d_scale if config.filter_3d else None}
+    return {"eaa_max_nodes": config.eaa_max_nodes, "filter_3d_scale": FILTER_3D_SCALE if config.filter_3d else None}
 
 
 def render_view(
@@ -122,20 +130,20 @@ def frustum_indices(
     intrinsics: Intrinsics,
     config: RenderConfig,
 ) -> torch.Tensor:  # [M] int64, increasing
-    """Rows of the Gaussians that can be drawn from poses near ``T_cw`` (``render.frustum_margin``).
+    """Rows of the Gaussians that can be drawn from poses near ``T_cw`` (:data:`FRUSTUM_MARGIN`).
 
     A Gaussian is kept when its mean lies beyond half the near plane and its k-sigma disc (radius
-    ``k_sigma * max scale * f / z`` px, plus a pixel) reaches the image enlarged by ``frustum_margin``
+    ``k_sigma * max scale * f / z`` px, plus a pixel) reaches the image enlarged by ``FRUSTUM_MARGIN``
     times its larger side on every side. One tracking or mapping call moves a pose by millimetres to
     centimetres, while a margin of 0.25 is about 16 degrees of a 70-degree view: a Gaussian left out is
     one no render of the view could draw, so images and gradients are those of the whole map, and the
     per-Gaussian projection scales with what the view sees, not with the size of the map.
     """
-    near = 0.5 * config.near_plane
+    near = 0.5 * RenderOptions.near_plane
     points_c = transform_points(T_cw.to(means), means.detach())  # [N, 3] camera frame
     uv, z = project(points_c, intrinsics.matrix(dtype=means.dtype, device=means.device), min_depth=near)  # [N, 2] px
-    pad = config.frustum_margin * max(intrinsics.width, intrinsics.height) + 1.0
-    reach = config.eaa_k_sigma * scales.detach().amax(dim=-1) * max(intrinsics.fx, intrinsics.fy) / z.clamp_min(near)
+    pad = FRUSTUM_MARGIN * max(intrinsics.width, intrinsics.height) + 1.0
+    reach = RenderOptions.k_sigma * scales.detach().amax(dim=-1) * max(intrinsics.fx, intrinsics.fy) / z.clamp_min(near)
     reach = reach + pad  # [N] px
     u, v = uv[:, 0], uv[:, 1]
     keep = ((z > near) & (u + reach > -0.5) & (u - reach < intrinsics.width - 0.5)

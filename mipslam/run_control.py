@@ -4,7 +4,7 @@
 the state (resume) or creates it, and loads the renderer before the first frame, so no stage is
 charged for it. :class:`FrameLoop` hands out the frames still to process and does what happens
 between two frames: the observer's frame record, a checkpoint every ``run.checkpoint_every`` frames,
-returning freed heap memory every ``run.release_memory_every`` frames, progress, and Ctrl-C; on an
+returning freed heap memory every ``RELEASE_MEMORY_EVERY`` frames, progress, and Ctrl-C; on an
 interruption it writes the checkpoint a resume needs. None of it changes a result.
 """
 from __future__ import annotations
@@ -26,12 +26,19 @@ from mipslam.checkpoint import load_latest_checkpoint, save_checkpoint
 from mipslam.config import Config, config_to_dict, config_to_yaml
 from mipslam.datasets import RGBDSequence, StreamEnded, make_sequence
 from mipslam.errors import CheckpointError, ConfigError, DatasetError, MipslamError
-from mipslam.heap import release_free_heap, set_mmap_threshold
+from mipslam.heap import release_free_heap
 from mipslam.io.run_folder import RunFolder, write_text_atomic
 from mipslam.observer import Observer
+from mipslam.mapping import MappingOptions
 from mipslam.state import FrameRecord, SLAMState
+from mipslam.tracking import TrackingOptions
 
 log = logging.getLogger(__name__)
+
+KEEP_CHECKPOINTS = 2  # complete checkpoints kept on disk (the newest, and one more should it be damaged)
+# Frames between returns of freed heap memory to the OS (glibc malloc_trim): without it fragmentation grows RSS by
+# about 3 MiB per 100 frames on long runs (docs/robustness.md).
+RELEASE_MEMORY_EVERY = 50
 
 # tqdm's default bar, with the rate always in frames/s (tqdm turns a rate below 1 into s/frame)
 _BAR_FORMAT = "{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, {rate_noinv_fmt}{postfix}]"
@@ -90,13 +97,11 @@ def prepare_run(config: Config, run_dir: str | Path, *, resume: bool, observer: 
     device = resolve_device(config.run.device)
     if config.run.threads:
         torch.set_num_threads(config.run.threads)
-    if config.run.mmap_threshold_kib:
-        set_mmap_threshold(config.run.mmap_threshold_kib * 1024)
     observer = observer or Observer(diagnostics=config.run.diagnostics)
     if resume:
         state = _restore(folder, config, device, observer)
     else:
-        state = SLAMState.initial(config.mapping, config.run.seed, device)
+        state = SLAMState.initial(MappingOptions.from_config(config.mapping), config.run.seed, device)
     write_text_atomic(folder.config_yaml, config_to_yaml(config))
     warm_up(config, device)
     return PreparedRun(folder, sequence, device, state, observer)
@@ -110,7 +115,7 @@ def warm_up(config: Config, device: torch.device) -> None:
 
     if config.render.backend != "torch" and device.type == "cpu":
         warm_up_renderer()
-    if config.loop.enabled or config.tracking.dense_start or config.tracking.relocalise_loss_ratio > 0:
+    if config.loop.enabled or TrackingOptions.dense_start or config.tracking.relocalise_loss_ratio > 0:
         from mipslam.loop.registration import load_open3d
 
         try:
@@ -125,14 +130,15 @@ def write_checkpoint(folder: RunFolder, state: SLAMState, config: Config, observ
         tensors, metadata = state.to_checkpoint()
         metadata["timings"] = observer.timings
         return save_checkpoint(folder.checkpoints, tensors, metadata, config=config_to_dict(config),
-                               keep=config.run.keep_checkpoints)
+                               keep=KEEP_CHECKPOINTS)
 
 
 def _restore(folder: RunFolder, config: Config, device: torch.device, observer: Observer) -> SLAMState:
     if not folder.checkpoints.is_dir():
         raise CheckpointError(f"{folder.root}: nothing to resume (no checkpoints/ folder); start a run without --resume")
     checkpoint = load_latest_checkpoint(folder.checkpoints, current_config=config_to_dict(config))
-    state = SLAMState.from_checkpoint(checkpoint.tensors, checkpoint.metadata, config.mapping, device)
+    state = SLAMState.from_checkpoint(checkpoint.tensors, checkpoint.metadata, MappingOptions.from_config(config.mapping),
+                                      device)
     observer.restore(checkpoint.metadata.get("timings", {}))
     log.info("resuming %s from %s (frame %d)", folder.root, checkpoint.path.name, state.next_frame)
     return state
@@ -232,7 +238,7 @@ class FrameLoop:
             log.warning("frame %d: tracking failed (%s); kept the motion-model pose", record.index, record.status)
         if cfg.checkpoint_every and state.next_frame % cfg.checkpoint_every == 0:
             write_checkpoint(run.folder, state, self.config, run.observer)
-        if cfg.release_memory_every and state.next_frame % cfg.release_memory_every == 0:
+        if state.next_frame % RELEASE_MEMORY_EVERY == 0:
             release_free_heap()  # fragmentation, not live data, would otherwise grow RSS
         self._progress.frame_done(state, record)
         if self._stop_requested:

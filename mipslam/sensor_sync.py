@@ -2,7 +2,7 @@
 
 Two ways a real RGB-D camera's images are not one snapshot, each undone here with the camera's velocity:
 
-- **depth at another instant** (``tracking.align_depth_time``): where a dataset says that depth and colour
+- **depth at another instant** (``TrackingOptions.align_depth_time``): where a dataset says that depth and colour
   were taken at different instants (``Frame.depth_time_offset``, from TUM's ``depth.txt`` and ``rgb.txt``
   timestamps), the depth image is resampled into the colour camera at the colour instant
   (:func:`mipslam.geometry.depth_time.depth_at_colour_time`). Off by default: it needs timestamps of the

@@ -17,12 +17,12 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from mipslam.checkpoint import capture_rng_state, restore_rng_state, select_prefix, with_prefix
-from mipslam.config import MappingConfig
 from mipslam.gaussians import GaussianMap, GaussianOptimizer
 from mipslam.geometry import interpolate_pose, se3_inverse
 from mipslam.loop.closer import LoopState
 
 if TYPE_CHECKING:
+    from mipslam.mapping import MappingOptions
     from mipslam.tracking import TrackingResult
 
 STATE_VERSION = 2  # 2: loop-closure state (pose graph, descriptors, loop log)
@@ -69,11 +69,11 @@ class SLAMState:
     loop_log: dict[str, list[dict[str, Any]]] = field(default_factory=lambda: {"candidates": [], "optimisations": []})
 
     @classmethod
-    def initial(cls, mapping_config: MappingConfig, seed: int, device: torch.device) -> "SLAMState":
+    def initial(cls, mapping_options: "MappingOptions", seed: int, device: torch.device) -> "SLAMState":
         gmap = GaussianMap.empty(device=device)
         generator = torch.Generator(device="cpu")
         generator.manual_seed(seed)
-        return cls(gmap, GaussianOptimizer.from_config(gmap, mapping_config), generator)
+        return cls(gmap, GaussianOptimizer.from_config(gmap, mapping_options), generator)
 
     # ------------------------------------------------------------------ queries
 
@@ -209,14 +209,14 @@ class SLAMState:
 
     @classmethod
     def from_checkpoint(cls, tensors: dict[str, torch.Tensor], metadata: dict[str, Any],
-                        mapping_config: MappingConfig, device: torch.device) -> "SLAMState":
+                        mapping_options: "MappingOptions", device: torch.device) -> "SLAMState":
         from mipslam.errors import CheckpointError
 
         if metadata.get("state_version") != STATE_VERSION:
             raise CheckpointError(f"checkpoint holds SLAM state version {metadata.get('state_version')}, this mipslam "
                                   f"reads version {STATE_VERSION}; start a new run")
         gmap = GaussianMap.from_state_dict(select_prefix("map", tensors), device=device)
-        optimizer = GaussianOptimizer.from_config(gmap, mapping_config)
+        optimizer = GaussianOptimizer.from_config(gmap, mapping_options)
         optimizer.load_state_dict({k: v.to(device) for k, v in select_prefix("optim", tensors).items()})
         generator = torch.Generator(device="cpu")
         restore_rng_state(tensors, metadata["rng"], {"run": generator})
@@ -254,7 +254,7 @@ class SLAMState:
 
 def update_running_loss(previous: float | None, loss: float, momentum: float) -> float:
     """Exponential moving average of good tracking losses (the level a loss jump is measured against):
-    ``momentum * previous + (1 - momentum) * loss`` (``tracking.running_loss_momentum``)."""
+    ``momentum * previous + (1 - momentum) * loss`` (``TrackingOptions.running_loss_momentum``)."""
     if previous is None or not math.isfinite(previous):
         return loss
     return momentum * previous + (1 - momentum) * loss

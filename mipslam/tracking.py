@@ -2,15 +2,15 @@
 
 The pose is parametrised as a left increment in the camera frame,
 ``T_cw = exp(xi) T_cw_init`` with ``xi = [rho, phi]`` (se(3), translation first), and optimised with
-Adam or Rprop (``tracking.optimizer``) on the loss of docs/design.md ("Losses", tracking):
+Adam or Rprop (``TrackingOptions.optimizer``) on the loss of docs/design.md ("Losses", tracking):
 ``alpha_c * mean(M_rgb |exposure(I) - I_gt|) + (1 - alpha_c) * mean(M_d |D - D_gt|)``,
 where the masks keep valid depth, rendered opacity >= ``opacity_threshold`` (pixels the map explains)
 and, for colour, pixels above an image-gradient percentile. Optional coarse-to-fine: the first
 levels run at reduced resolution (area-averaged targets, intrinsics scaled with the pixel-centre rule),
-optionally in a cheaper footprint mode (``tracking.coarse_render_mode``), as may the first
+optionally in a cheaper footprint mode (``TrackingOptions.coarse_render_mode``), as may the first
 ``tracking.coarse_mode_iterations`` steps at the finest resolution (the later steps alone judge the best pose).
 The renderer's pose-only backward is used (the map is frozen), on the Gaussians that can reach the
-view from the motion-model pose (:func:`~mipslam.rendering.frustum_indices`, ``render.frustum_margin``).
+view from the motion-model pose (:func:`~mipslam.rendering.frustum_indices`, ``mipslam.rendering.FRUSTUM_MARGIN``).
 With ``tracking.direct_iterations`` > 0 the gradient steps start where a direct RGB-D alignment
 (Gauss-Newton, :func:`~mipslam.geometry.direct.align_direct`) of the map's render onto the frame ends.
 
@@ -25,12 +25,12 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Callable, Literal
 
 import numpy as np
 import torch
 
-from mipslam.config import RenderConfig, TrackingConfig
+from mipslam.config import RenderConfig, TrackingConfig, section_options
 from mipslam.errors import MipslamError
 from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry import nearest_rigid, resize_area
@@ -63,7 +63,7 @@ class TrackingResult:
     ok:             False when tracking failed (the frame is flagged and not mapped)
     status:         "ok", "initial", "non_finite_loss", "too_few_valid_pixels" or "loss_jump"
     map_coverage:   fraction of the frame's valid-depth pixels (finest level) where the map renders a surface
-                    (opacity >= tracking.coverage_opacity) at the returned pose; NaN when not rendered
+                    (opacity >= TrackingOptions.coverage_opacity) at the returned pose; NaN when not rendered
     """
 
     T_wc: torch.Tensor
@@ -154,10 +154,92 @@ class _FrameWork:
         return None
 
 
-class Tracker:
-    """Tracks frames against a frozen map (reads only the tracking and render config sections)."""
+@dataclass(frozen=True)
+class TrackingOptions:
+    """Everything tracking reads: the ``tracking`` config section's keys (defaults there) and the stage's
+    constants (defined here; their evidence is in docs/tracking.md and docs/bench.md). Built from the config
+    by :meth:`from_config`; a test or a benchmark that needs another constant ``replace``-s it."""
 
-    def __init__(self, config: TrackingConfig, render_config: RenderConfig):
+    iterations: int = TrackingConfig.iterations
+    direct_iterations: int = TrackingConfig.direct_iterations
+    resolution_scale: float = TrackingConfig.resolution_scale
+    coarse_mode_iterations: int = TrackingConfig.coarse_mode_iterations
+    use_exposure: bool = TrackingConfig.use_exposure
+    opacity_threshold: float = TrackingConfig.opacity_threshold
+    relocalise_loss_ratio: float = TrackingConfig.relocalise_loss_ratio
+    # The sensor's depth noise power p (dataset.depth_noise_power): the direct alignment's depth residuals are in
+    # units of z^p (0: metres); its robust scale stays per frame (docs/tracking.md, "Depth noise").
+    direct_depth_noise_power: float = 0.0
+    # rprop: lr_* is each coordinate's first step (m, rad); it grows 1.2x while the coordinate's gradient keeps its
+    # sign and halves when it flips, never beyond lr * rprop_max_step_ratio, so a good start is refined in small
+    # steps and a level stops once the steps fall below convergence_threshold. adam (no shipped config): every
+    # step moves a coordinate by about lr until the end, decayed to lr * lr_final_ratio over a level.
+    optimizer: Literal["adam", "rprop"] = "rprop"
+    lr_translation: float = 5e-4
+    lr_rotation: float = 1e-3
+    rprop_max_step_ratio: float = 50.0
+    lr_final_ratio: float = 1.0
+    # Stop a level when the pose update (se3 norm; rprop: the norm of its next steps) is below this.
+    convergence_threshold: float = 1e-4
+    alpha_color: float = 0.5  # weight of the photometric term against depth
+    coarse_to_fine: tuple[float, ...] = ()  # e.g. (0.5,) tracks at half resolution first
+    coarse_share: float = 0.5  # fraction of the iterations given to the coarse levels (split evenly between them)
+    min_width: int = 160  # the finest level is never narrower than this (pixels; 0 = no floor)
+    # a pixel the map renders at this opacity or more counts as mapped (keyframes.min_map_coverage)
+    coverage_opacity: float = 0.5
+    # The feature front-end's start replaces the motion model's only when the map renders it with a loss lower
+    # by this fraction (Tracker.best_start).
+    start_margin: float = 0.1
+    gradient_mask_percentile: float = 0.0  # keep colour pixels above this image-gradient percentile (0-100)
+    min_valid_fraction: float = 0.05
+    failure_loss_ratio: float = 5.0  # loss above ratio * running level = failure
+    # Largest jump relocalisation accepts from the RGB-D alignment to the previous frame (a bump, dropped frames).
+    relocalise_max_m: float = 1.0
+    relocalise_max_deg: float = 45.0
+    # Where the feature front-end gives no start (texture-poor or repeated texture, a large motion), align the
+    # newest tracked frame to this one by dense RGB-D odometry (Open3D) from the motion model's pose; the render
+    # loss then judges that pose against the motion model's (Tracker.best_start). Bounded by relocalise_max_*.
+    dense_start: bool = True
+    # Move each depth image to its colour image's instant with the motion model, where the dataset gives the two
+    # their own timestamps (mipslam.sensor_sync). Off: on fr1_rpy, whose timestamps are the driver's, it is worse
+    # (docs/tracking.md, "Colour and depth at different instants").
+    align_depth_time: bool = False
+    # Momentum of the running level of good tracking losses (exponential moving average) that the failure and
+    # relocalisation ratios compare a frame's loss with.
+    running_loss_momentum: float = 0.9
+    # Footprint mode of tracking's renders (None: render.mode), and of the coarse levels and the first
+    # coarse_mode_iterations steps of the finest (None: render_mode).
+    render_mode: Literal["point", "mip", "ewa", "eaa", "exact"] | None = None
+    coarse_render_mode: Literal["point", "mip", "ewa", "eaa", "exact"] | None = "mip"
+    # Depth term on the alpha-normalised rendered depth D / max(A, depth_alpha_floor) instead of the raw
+    # D = sum T a z (mipslam/losses/photometric.py; docs/mapping.md).
+    depth_normalise: bool = False
+    depth_alpha_floor: float = 0.5
+    max_depth: float = 0.0  # metres; observed depth beyond it stays out of the depth term (0 = no limit)
+    # Depth pixels whose residual exceeds this many times the median residual leave the depth term (0 = off).
+    depth_outlier_ratio: float = 0.0
+    # Direct RGB-D alignment (mipslam/geometry/direct.py) of the map's render onto the frame before the gradient
+    # steps: direct_iterations Gauss-Newton steps per pyramid level at most, direct_levels levels (each half the
+    # next, the finest at tracking's finest resolution), direct_renders renders of the map it aligns to (each
+    # after the first at the pose the previous alignment reached; a render that explains the frame worse ends
+    # the alignment at the pose before it).
+    direct_levels: int = 2
+    direct_renders: int = 1
+    direct_convergence: float = 1e-4  # a level stops once a step's se(3) norm falls below this
+    # Weight of the intensity term against depth in the alignment, each term in units of its robust scale
+    # (docs/tracking.md: 0.7-0.9 tracked fr1_rpy best under its colour-depth lag).
+    direct_alpha_color: float = 0.8
+
+    @classmethod
+    def from_config(cls, section: TrackingConfig, *, depth_noise_power: float = 0.0) -> "TrackingOptions":
+        """The options of a ``tracking`` config section and the dataset's ``depth_noise_power``."""
+        return section_options(cls, section, direct_depth_noise_power=depth_noise_power)
+
+
+class Tracker:
+    """Tracks frames against a frozen map (its options and the render config section)."""
+
+    def __init__(self, config: TrackingOptions, render_config: RenderConfig):
         self.config = config
         self.render_config = render_config
         self._work: _FrameWork | None = None  # of the frame tracked last
@@ -215,7 +297,7 @@ class Tracker:
 
     def _split_finest_by_mode(self, levels: list[_Level]) -> list[_Level]:
         """``levels`` with the finest level's first ``tracking.coarse_mode_iterations`` steps (at most all but
-        one) as a level of their own in ``tracking.coarse_render_mode``: the same images, a cheaper footprint."""
+        one) as a level of their own in ``TrackingOptions.coarse_render_mode``: the same images, a cheaper footprint."""
         cfg, finest = self.config, levels[-1]
         finest_mode = finest.render_mode or self.render_config.mode
         split = min(cfg.coarse_mode_iterations, finest.iterations - 1)
@@ -231,7 +313,7 @@ class Tracker:
         if work.direct_targets is not None:
             return work.direct_targets
         full = work.levels[-1]
-        depth = torch.where(full.target_masks.depth, full.depth, 0.0)  # the depth term's pixels (tracking.max_depth)
+        depth = torch.where(full.target_masks.depth, full.depth, 0.0)  # the depth term's pixels (TrackingOptions.max_depth)
         targets = []
         for scale in pyramid_scales(self.config.direct_levels):
             color, level_depth = full.color, depth
@@ -291,7 +373,7 @@ class Tracker:
             best = _Seen(value, loss.num_depth_pixels, self._covered_pixels(out.alpha, full), T_cw)
             opaque = out.alpha >= max(cfg.opacity_threshold, 1e-3)
             # The depth as the gradient steps' loss reads it (the composited sum(T a z) unless
-            # tracking.depth_normalise): where the two objectives disagree the steps undo the alignment
+            # TrackingOptions.depth_normalise): where the two objectives disagree the steps undo the alignment
             # (dividing by the opacity alone: the noisy dolly 0.75 -> 2.22 cm, docs/tracking.md).
             depth = out.depth / out.alpha.clamp_min(cfg.depth_alpha_floor) if cfg.depth_normalise else out.depth
             depth = torch.where(opaque, depth, 0.0)
@@ -314,7 +396,7 @@ class Tracker:
 
     def _covered_pixels(self, alpha: torch.Tensor, level: _Level) -> int:
         """Valid-depth pixels of ``level`` that a render with opacity ``alpha`` [h, w] covers (opacity >=
-        ``tracking.coverage_opacity``)."""
+        ``TrackingOptions.coverage_opacity``)."""
         return int(((alpha >= self.config.coverage_opacity) & level.target_masks.depth).sum())
 
     def _step_render(self, gaussians: ActivatedGaussians, rho: torch.Tensor, phi: torch.Tensor, T_cw_init: torch.Tensor,
@@ -478,7 +560,7 @@ class Tracker:
         """Index of the candidate start whose render at tracking's finest level explains the frame best (lowest
         loss, no exposure; a candidate seeing under ``min_valid_fraction`` of the pixels through the map loses).
         A later candidate replaces an earlier one only when its loss is lower by the fraction
-        ``tracking.start_margin``: on gentle motion the motion model's start is already in the basin, and a
+        ``TrackingOptions.start_margin``: on gentle motion the motion model's start is already in the basin, and a
         feature pose a few millimetres off must not replace it on the noise of one render.
 
         One forward render per candidate: the features' pose and the motion model's are judged by the same
@@ -514,7 +596,7 @@ class Tracker:
                               valid_fraction, False, status)
 
 
-def _pose_optimizer(cfg: TrackingConfig, groups: list[dict]) -> "torch.optim.Optimizer | PoseRprop":
+def _pose_optimizer(cfg: TrackingOptions, groups: list[dict]) -> "torch.optim.Optimizer | PoseRprop":
     """Adam, or Rprop (Riedmiller & Braun 1993) started at the configured rates and capped at
     ``rprop_max_step_ratio`` times them; the etas are Rprop's published 0.5 / 1.2."""
     if cfg.optimizer == "adam":
@@ -658,12 +740,12 @@ def frontend_start(frontend: Frontend | None, state: "SLAMState", frame: Frame, 
 
 def relocalise_keyframes(tracker: Tracker, frontend: Frontend | None, state: "SLAMState", frame: Frame,
                          frames: "FrameCache", gaussians: ActivatedGaussians, result: TrackingResult) -> TrackingResult:
-    """A frame whose tracking failed is matched to the newest ``frontend.relocalise_keyframes`` keyframes
+    """A frame whose tracking failed is matched to the newest ``FeatureOptions.relocalise_keyframes`` keyframes
     (features + PnP) and tracked again from the best match; it stays failed (not mapped) when no keyframe
     agrees or the retry fails too."""
     if result.ok or frontend is None or not state.keyframe_frames:
         return result
-    newest = [state.frames[p] for p in reversed(state.keyframe_frames)][: frontend.config.relocalise_keyframes]
+    newest = [state.frames[p] for p in reversed(state.keyframe_frames)][: frontend.options.relocalise_keyframes]
     start = frontend.relocalise(frame, [(frames[r.index], r.T_wc) for r in newest])
     if start is None:
         return result
@@ -683,7 +765,7 @@ def relocalise(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "Fram
     (the camera jumped, was bumped, or frames were dropped: the motion model started tracking far from
     the truth and its small steps could not get there); the lower loss wins. Ratio 0 turns it off. The
     alignment is dense RGB-D odometry (Open3D's coarse-to-fine hybrid term, as loop verification uses),
-    accepted up to ``tracking.relocalise_max_m`` / ``relocalise_max_deg`` from the tracked pose.
+    accepted up to ``TrackingOptions.relocalise_max_m`` / ``relocalise_max_deg`` from the tracked pose.
     """
     cfg = tracker.config
     running = state.running_loss
@@ -703,12 +785,12 @@ def relocalise(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "Fram
     return result
 
 
-def dense_start(cfg: TrackingConfig, state: "SLAMState", frame: Frame, frames: "FrameCache",
+def dense_start(cfg: TrackingOptions, state: "SLAMState", frame: Frame, frames: "FrameCache",
                 prediction: torch.Tensor) -> torch.Tensor | None:
     """A start for a frame the features could not place (texture-poor or repeated texture, a large motion):
     the newest tracked frame aligned to it by dense RGB-D odometry from the motion model's ``prediction``
     [4, 4] float64 (camera-to-world). Returns T_wc [4, 4] float64, or None when the alignment fails its checks.
-    :func:`track_frame` calls it only with ``tracking.dense_start`` on; :meth:`Tracker.best_start` then judges
+    :func:`track_frame` calls it only with ``TrackingOptions.dense_start`` on; :meth:`Tracker.best_start` then judges
     it against the prediction."""
     reference = state.newest_tracked_frame()
     if reference is None:
@@ -716,12 +798,12 @@ def dense_start(cfg: TrackingConfig, state: "SLAMState", frame: Frame, frames: "
     return align_to_frame(cfg, frames[reference.index], reference.T_wc, frame, prediction)
 
 
-def align_to_frame(cfg: TrackingConfig, reference: Frame, T_wc_reference: torch.Tensor, frame: Frame,
+def align_to_frame(cfg: TrackingOptions, reference: Frame, T_wc_reference: torch.Tensor, frame: Frame,
                    T_wc_guess: torch.Tensor) -> torch.Tensor | None:
     """``frame``'s pose T_wc [4, 4] float64 from Open3D's dense RGB-D odometry (coarse-to-fine hybrid term, as
     loop verification uses) against ``reference`` at ``T_wc_reference`` [4, 4], started at ``T_wc_guess`` [4, 4].
     None when Open3D is missing or the alignment fails its checks or moves further than
-    ``tracking.relocalise_max_m`` / ``relocalise_max_deg`` from the guess."""
+    ``TrackingOptions.relocalise_max_m`` / ``relocalise_max_deg`` from the guess."""
     T_wc_reference = T_wc_reference.to(torch.float64)
     options = RegistrationOptions(method="rgbd_odometry", pixel_stride=1, min_points=100,
                                   max_correction_m=cfg.relocalise_max_m, max_correction_deg=cfg.relocalise_max_deg)

@@ -29,7 +29,7 @@ def test_sweep_values_are_yaml_and_split_outside_brackets():
     sweep = parse_sweep("render.eaa_max_nodes=1,2,16")
     assert sweep.key == "render.eaa_max_nodes" and sweep.values == (1, 2, 16)
     assert sweep.assignments() == ("render.eaa_max_nodes=1", "render.eaa_max_nodes=2", "render.eaa_max_nodes=16")
-    assert parse_sweep("tracking.coarse_to_fine=[],[0.5],[0.25,0.5]").values == ([], [0.5], [0.25, 0.5])
+    assert parse_sweep("eval.scales=[1],[0.5],[0.25,0.5]").values == ([1], [0.5], [0.25, 0.5])
     assert parse_sweep("loop.enabled=true,false").values == (True, False)
 
 

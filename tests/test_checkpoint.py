@@ -225,7 +225,7 @@ def test_incompatible_config_is_refused_naming_the_keys(tmp_path):
     assert "render.mode: checkpoint 'eaa', now 'point'" in message and "dataset.stride" in message
     assert "checkpoint-000001.ckpt" in message
     # settings that do not change the result may differ
-    free = config_to_dict(config_from_dict({"run": {"checkpoint_every": 7, "keep_checkpoints": 5, "threads": 1},
+    free = config_to_dict(config_from_dict({"run": {"checkpoint_every": 7, "diagnostics": True, "threads": 1},
                                             "eval": {"alignment": "sim3"}, "dataset": {"max_frames": 99}}))
     assert load_latest_checkpoint(tmp_path, current_config=free).tensors["x"].item() == 1.0
     # a key missing on one side (a config from another version) counts as a difference
@@ -250,10 +250,10 @@ def test_config_comparison_takes_one_folder_written_two_ways_as_one_path(tmp_pat
 
 def test_changed_free_settings_are_logged_on_resume(tmp_path, caplog):
     save_checkpoint(tmp_path, {"x": torch.ones(1)}, {}, config=CONFIG)
-    current = config_to_dict(config_from_dict({"run": {"threads": 1, "release_memory_every": 0}}))
+    current = config_to_dict(config_from_dict({"run": {"threads": 1, "checkpoint_every": 0}}))
     with caplog.at_level(logging.INFO, logger="mipslam.checkpoint"):
         load_latest_checkpoint(tmp_path, current_config=current)
-    assert "run.threads: 0 -> 1" in caplog.text and "run.release_memory_every: 50 -> 0" in caplog.text
+    assert "run.threads: 0 -> 1" in caplog.text and "run.checkpoint_every: 50 -> 0" in caplog.text
 
 
 def test_the_header_is_read_without_the_payload(tmp_path):
@@ -445,7 +445,7 @@ def test_a_key_newer_than_the_checkpoint_is_no_difference_at_its_default():
     code behaved as the default); any other value of the new key is a difference that changes results."""
     current = config_to_dict(Config())
     saved = json.loads(json.dumps(current))
-    del saved["tracking"]["running_loss_momentum"]
+    del saved["tracking"]["coarse_mode_iterations"]
     assert config_differences(saved, current) == []
-    current["tracking"]["running_loss_momentum"] = 0.5
-    assert config_differences(saved, current) == ["tracking.running_loss_momentum: checkpoint <absent>, now 0.5"]
+    current["tracking"]["coarse_mode_iterations"] = 4
+    assert config_differences(saved, current) == ["tracking.coarse_mode_iterations: checkpoint <absent>, now 4"]

@@ -55,15 +55,15 @@ def test_unknown_key_names_the_key_and_the_nearest_valid_one():
 
 def test_unknown_key_in_a_file_is_rejected(tmp_path):
     path = tmp_path / "c.yaml"
-    path.write_text("mapping:\n  iterations: 3\n  isotropy_weigth: 2\n")
-    with pytest.raises(ConfigError, match="mapping.isotropy_weigth.*mapping.isotropy_weight"):
+    path.write_text("mapping:\n  iterations: 3\n  initial_opacty: 0.9\n")
+    with pytest.raises(ConfigError, match="mapping.initial_opacty.*mapping.initial_opacity"):
         load_config(path)
 
 
 def test_a_retired_key_says_what_replaced_it(tmp_path):
     path = tmp_path / "old_run_config.yaml"
     path.write_text("render:\n  eaa_point_area: 16\n")
-    with pytest.raises(ConfigError, match=r"render\.eaa_point_area.*retired.*render\.eaa_single_node_sigma"):
+    with pytest.raises(ConfigError, match=r"render\.eaa_point_area.*retired.*eaa_single_node_sigma"):
         load_config(path)
 
 
@@ -79,12 +79,13 @@ def test_a_retired_key_says_what_replaced_it(tmp_path):
         ("dataset.width=0", "dataset.width"),
         ("run.evaluate_at_end=maybe", "expected true or false"),
         ("eval.scales=[0.5,-1]", "eval.scales"),
-        ("tracking.lr_translation=fast", "expected a number"),
-        ("tracking.lr_translation=nan", "expected a number"),
-        ("tracking.lr_final_ratio=0", "tracking.lr_final_ratio"),
-        ("tracking.optimizer=sgd", "tracking.optimizer"),
-        ("tracking.rprop_max_step_ratio=0.5", "tracking.rprop_max_step_ratio"),
-        ("render.frustum_margin=-0.1", "render.frustum_margin"),
+        ("tracking.resolution_scale=fast", "expected a number"),
+        ("tracking.resolution_scale=nan", "expected a number"),
+        ("tracking.resolution_scale=0", "tracking.resolution_scale"),
+        ("tracking.relocalise_loss_ratio=0.5", "tracking.relocalise_loss_ratio"),
+        ("mapping.initial_opacity=1", "mapping.initial_opacity"),
+        ("loop.fitness_threshold=1.5", "loop.fitness_threshold"),
+        ("dataset.depth_noise_power=-1", "dataset.depth_noise_power"),
     ],
 )
 def test_wrong_types_and_out_of_range_values(override, message):
@@ -101,8 +102,8 @@ def test_override_values_are_typed():
 
 def test_exponent_without_a_dot_is_a_number():
     # YAML 1.1 reads 5e-4 as a string; a float field takes it as the number the user meant.
-    config = load_config(overrides=["tracking.lr_translation=5e-4", "mapping.lr_means=1E-3"])
-    assert config.tracking.lr_translation == 5e-4 and config.mapping.lr_means == 1e-3
+    config = load_config(overrides=["mapping.lr_poses=5e-4", "refine.lr_poses=1E-3"])
+    assert config.mapping.lr_poses == 5e-4 and config.refine.lr_poses == 1e-3
 
 
 def test_malformed_override():
@@ -113,11 +114,11 @@ def test_malformed_override():
 
 
 def test_inherit_from_merges_deeply_and_child_wins(tmp_path):
-    (tmp_path / "parent.yaml").write_text("tracking:\n  iterations: 11\n  alpha_color: 0.3\nmapping:\n  iterations: 5\n")
+    (tmp_path / "parent.yaml").write_text("tracking:\n  iterations: 11\n  resolution_scale: 0.3\nmapping:\n  iterations: 5\n")
     (tmp_path / "child.yaml").write_text("inherit_from: parent.yaml\ntracking:\n  iterations: 22\n")
     config = load_config(tmp_path / "child.yaml")
     assert config.tracking.iterations == 22
-    assert config.tracking.alpha_color == 0.3
+    assert config.tracking.resolution_scale == 0.3
     assert config.mapping.iterations == 5
 
 
@@ -227,10 +228,10 @@ def test_values_yaml_cannot_build_are_config_errors(tmp_path):
         sys.setrecursionlimit(limit)
 
 
-@pytest.mark.parametrize("override", ["tracking.lr_translation=.nan", "tracking.lr_translation=.inf",
-                                      "tracking.lr_translation=-.inf", f"tracking.lr_translation={10 ** 400}"])
+@pytest.mark.parametrize("override", ["mapping.lr_poses=.nan", "mapping.lr_poses=.inf",
+                                      "mapping.lr_poses=-.inf", f"mapping.lr_poses={10 ** 400}"])
 def test_non_finite_numbers_are_refused(override):
-    with pytest.raises(ConfigError, match="tracking.lr_translation"):
+    with pytest.raises(ConfigError, match="mapping.lr_poses"):
         load_config(overrides=[override])
 
 

@@ -13,7 +13,8 @@ import math
 import pytest
 import torch
 
-from mipslam.config import MappingConfig, RenderConfig
+from mipslam.mapping import MappingOptions
+from mipslam.config import RenderConfig
 from mipslam.errors import DatasetError
 from mipslam.gaussians import GaussianMap, gaussians_from_rgbd
 from mipslam.gaussians.optimizer import GaussianOptimizer
@@ -110,8 +111,8 @@ def test_mapping_keeps_the_highest_rate_of_the_views_that_train_a_gaussian():
     near = torch.eye(4, dtype=torch.float64)
     near[2, 3] = 0.5  # half a metre closer to the wall: f / z = 40 / 1.5
     gmap = GaussianMap.empty()
-    optimizer = GaussianOptimizer.from_config(gmap, MappingConfig())
-    mapper = Mapper(MappingConfig(densify_pixel_stride=4), RenderConfig(backend="torch", filter_3d=True))
+    optimizer = GaussianOptimizer.from_config(gmap, MappingOptions())
+    mapper = Mapper(MappingOptions(densify_pixel_stride=4), RenderConfig(backend="torch", filter_3d=True))
     views = [MappingView(1, color, depth, far, torch.zeros(2), INTRINSICS, False),
              MappingView(0, color, torch.full_like(depth, 1.5), near, torch.zeros(2), INTRINSICS, False)]
     mapper.map_keyframe(gmap, optimizer, views, iterations=2, generator=torch.Generator().manual_seed(0),

@@ -11,6 +11,8 @@ import pytest
 import torch
 
 import data_synth
+from mipslam.mapping import MappingOptions
+from mipslam.tracking import TrackingOptions
 from mipslam.config import FrontendConfig, load_config
 from mipslam.datasets import make_sequence
 from mipslam.gaussians import GaussianMap, GaussianOptimizer
@@ -256,19 +258,19 @@ def test_best_start_prefers_the_pose_the_map_explains(small_sequence):
     sequence = make_sequence(config.dataset)
     frame, T_wc = sequence[0], sequence.gt_T_wc[0]
     gmap = GaussianMap.empty()
-    optimizer = GaussianOptimizer.from_config(gmap, config.mapping)
-    mapper = Mapper(config.mapping, config.render)
+    optimizer = GaussianOptimizer.from_config(gmap, MappingOptions.from_config(config.mapping))
+    mapper = Mapper(MappingOptions.from_config(config.mapping), config.render)
     view = MappingView(0, frame.color, frame.depth, T_wc, torch.zeros(2), frame.intrinsics, optimize_pose=False)
     mapper.densify(gmap, optimizer, view, frame_index=0)
     mapper.optimize(gmap, optimizer, [view], 30, torch.Generator().manual_seed(0))
     gaussians = gmap.activated().detached()
     wrong = T_wc @ se3_exp(torch.tensor([0.04, 0.0, 0.0, 0.0, 0.05, 0.0], dtype=torch.float64))
     for scale in (1.0, 0.5):  # at the full and at a reduced tracking resolution
-        tracker = Tracker(replace(config.tracking, resolution_scale=scale), config.render)
+        tracker = Tracker(replace(TrackingOptions.from_config(config.tracking), resolution_scale=scale), config.render)
         assert tracker.best_start(gaussians, frame, [wrong, T_wc]) == 1
         assert tracker.best_start(gaussians, frame, [T_wc, wrong]) == 0
         assert tracker.best_start(gaussians, frame, [T_wc, T_wc]) == 0  # a tie keeps the preferred (first) start
-    result = Tracker(replace(config.tracking, resolution_scale=0.5), config.render).track(gaussians, frame, wrong, None)
+    result = Tracker(replace(TrackingOptions.from_config(config.tracking), resolution_scale=0.5), config.render).track(gaussians, frame, wrong, None)
     assert result.ok and 0 < result.valid_fraction <= 1
 
 

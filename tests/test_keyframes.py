@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from mipslam.config import KeyframeConfig
+from mipslam.keyframes import KeyframeOptions
 from mipslam.geometry.se3 import se3_exp
 from mipslam.keyframes import (
     covisibility,
@@ -58,14 +58,14 @@ def test_occlusion_and_missing_keyframe_depth_are_not_covisible():
 def test_no_valid_depth_gives_nan_and_no_keyframe():
     empty = torch.zeros(H, W)
     assert math.isnan(covisibility(empty, pose(), K, wall(), pose()))
-    decision = decide_keyframe(KeyframeConfig(), empty, pose(), K, wall(), pose())
+    decision = decide_keyframe(KeyframeOptions(), empty, pose(), K, wall(), pose())
     assert not decision.is_keyframe and decision.reasons == ("no_valid_depth",)
-    first = decide_keyframe(KeyframeConfig(), empty, pose(), K, None, None)
+    first = decide_keyframe(KeyframeOptions(), empty, pose(), K, None, None)
     assert not first.is_keyframe and first.reasons == ("no_valid_depth",)
 
 
 def test_first_frame_is_a_keyframe_and_a_resting_camera_is_not():
-    config = KeyframeConfig()
+    config = KeyframeOptions()
     first = decide_keyframe(config, wall(), pose(), K, None, None)
     assert first.is_keyframe and first.reasons == ("first",)
     rest = decide_keyframe(config, wall(), pose(), K, wall(), pose())
@@ -74,7 +74,7 @@ def test_first_frame_is_a_keyframe_and_a_resting_camera_is_not():
 
 
 def test_translation_relative_to_median_depth():
-    config = KeyframeConfig(covisibility_threshold=0.9, translation_ratio=0.1, rotation_deg=15.0)
+    config = KeyframeOptions(covisibility_threshold=0.9, translation_ratio=0.1, rotation_deg=15.0)
     # 0.3 m forward at a median depth of 2 m: ratio 0.15 > 0.1, everything still covisible
     forward = decide_keyframe(config, wall(1.7), pose(tz=0.3), K, wall(), pose())
     assert forward.is_keyframe and forward.reasons == ("translation",)
@@ -86,7 +86,7 @@ def test_translation_relative_to_median_depth():
 
 
 def test_rotation_threshold():
-    config = KeyframeConfig(covisibility_threshold=0.05, rotation_deg=15.0)
+    config = KeyframeOptions(covisibility_threshold=0.05, rotation_deg=15.0)
     turned = decide_keyframe(config, wall(), pose(rz=math.radians(20)), K, wall(), pose())
     assert turned.reasons == ("rotation",) and turned.rotation_deg == pytest.approx(20.0)
     slight = decide_keyframe(config, wall(), pose(rz=math.radians(10)), K, wall(), pose())
@@ -94,7 +94,7 @@ def test_rotation_threshold():
 
 
 def test_covisibility_drop_alone_makes_a_keyframe():
-    config = KeyframeConfig(covisibility_threshold=0.9)
+    config = KeyframeOptions(covisibility_threshold=0.9)
     keyframe_depth = wall()
     keyframe_depth[:, :16] = 1.0  # a quarter of the view was hidden in the keyframe
     decision = decide_keyframe(config, wall(), pose(), K, keyframe_depth, pose())
@@ -143,7 +143,7 @@ def test_random_past_keyframes_are_deterministic_and_outside_the_window():
 
 
 def test_a_view_the_map_covers_too_little_is_a_keyframe_even_at_full_covisibility():
-    config = KeyframeConfig(min_map_coverage=0.9)
+    config = KeyframeOptions(min_map_coverage=0.9)
     # the camera rests on the last keyframe (covisibility 1) but the map renders only 80 % of its depth
     thin = decide_keyframe(config, wall(), pose(), K, wall(), pose(), map_coverage=0.8)
     assert thin.is_keyframe and thin.reasons == ("coverage",)
@@ -151,5 +151,5 @@ def test_a_view_the_map_covers_too_little_is_a_keyframe_even_at_full_covisibilit
     assert not covered.is_keyframe
     unknown = decide_keyframe(config, wall(), pose(), K, wall(), pose())  # no render: the rule cannot fire
     assert not unknown.is_keyframe
-    off = decide_keyframe(KeyframeConfig(), wall(), pose(), K, wall(), pose(), map_coverage=0.1)  # default 0: off
+    off = decide_keyframe(KeyframeOptions(), wall(), pose(), K, wall(), pose(), map_coverage=0.1)  # default 0: off
     assert not off.is_keyframe

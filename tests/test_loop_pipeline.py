@@ -26,8 +26,9 @@ from mipslam.gaussians import GaussianMap, GaussianParameters
 from mipslam.geometry import se3_exp, se3_inverse, se3_log
 from mipslam.io.ply import read_map_ply
 from mipslam.io.tum import read_tum_trajectory
-from mipslam.loop.closer import LoopState
+from mipslam.loop.closer import LoopOptions, LoopState
 from fault_injection import BiasedOdometer, WrongLoop
+from tiny_runs import split_settings
 from mipslam.observer import Observer
 from mipslam.pipeline import PipelineHooks, run_slam
 from mipslam.rendering import render_view
@@ -57,16 +58,28 @@ def drift_sequence(tmp_path_factory) -> Path:
     return out
 
 
+def drift_setup(sequence: Path, *extra: str):
+    """The drift runs' config and the stage constants they replace (PipelineHooks.constants)."""
+    overrides, constants = split_settings([*TINY, *DRIFT, *extra])
+    return load_config("synthetic", overrides=[f"dataset.path={sequence}", *overrides]), constants
+
+
 def drift_config(sequence: Path, *extra: str):
-    return load_config("synthetic", overrides=[f"dataset.path={sequence}", *TINY, *DRIFT, *extra])
+    return drift_setup(sequence, *extra)[0]
+
+
+def drift_loop_options(config, constants: dict) -> LoopOptions:
+    """The loop stage's options of a drift run, as the pipeline builds them (PipelineHooks.options)."""
+    return PipelineHooks(constants=constants).options(
+        "loop", LoopOptions.from_config(config.loop, depth_noise_power=config.dataset.depth_noise_power))
 
 
 def drift_run(sequence: Path, run_dir: Path, *extra: str, wrong: WrongLoop | None = None, resume: bool = False,
               diagnostics: bool = False):
-    config = drift_config(sequence, *extra)
+    config, constants = drift_setup(sequence, *extra)
     odometer = BiasedOdometer(make_sequence(config.dataset).gt_T_wc, BIAS)
     return run_slam(config, run_dir, resume=resume, evaluate=False, observer=Observer(diagnostics=diagnostics),
-                    hooks=PipelineHooks(after_tracking=odometer, loop_verification=wrong))
+                    hooks=PipelineHooks(after_tracking=odometer, loop_verification=wrong, constants=constants))
 
 
 def ate_rmse(run_dir: Path) -> float:
@@ -282,7 +295,7 @@ def closer_steps(sequence: Path, drift_per_keyframe: torch.Tensor, *overrides: s
     verification returns the exact ground-truth relative pose (a perfect loop edge)."""
     from mipslam.loop.closer import KeyframeView, LoopCloser
 
-    config = drift_config(sequence, *overrides)
+    config, constants = drift_setup(sequence, *overrides)
     frames = make_sequence(config.dataset)
     gt = frames.gt_T_wc.to(F64)[::2]
     drifted = torch.stack([gt[k] @ se3_exp(k * drift_per_keyframe) for k in range(len(gt))])
@@ -293,7 +306,8 @@ def closer_steps(sequence: Path, drift_per_keyframe: torch.Tensor, *overrides: s
     def verification(i, k, result):
         return exact_edge(i, k, result) if hook is None else hook(i, k, exact_edge(i, k, result))
 
-    closer, state, steps = LoopCloser(config.loop, verification_hook=verification), LoopState.empty(), []
+    closer, state, steps = LoopCloser(drift_loop_options(config, constants), verification_hook=verification), \
+        LoopState.empty(), []
 
     def view(k: int) -> KeyframeView:
         frame = frames[2 * k]
@@ -395,7 +409,7 @@ def test_verification_rejects_a_correction_larger_than_the_odometry_can_have_dri
     from mipslam.loop.registration import RegistrationResult
 
     config = load_config("base")  # odometry sigma 1 cm + 5 % of the path, 3 sigma
-    closer = LoopCloser(config.loop)
+    closer = LoopCloser(LoopOptions.from_config(config.loop))
     # 20 keyframes 2 cm apart along x, no rotation: 0.38 m of path, 3 x (0.01 + 0.05 x 0.38) = 8.7 cm allowed.
     chain = torch.eye(4, dtype=F64).repeat(20, 1, 1)
     chain[:, 0, 3] = 0.02 * torch.arange(20, dtype=F64)
@@ -408,7 +422,7 @@ def test_verification_rejects_a_correction_larger_than_the_odometry_can_have_dri
     too_far = closer._within_expected_drift(verified(0.19, 1.0), chain)
     assert not too_far.accepted and "0.087 m" in too_far.reason and "0.38 m" in too_far.reason
     assert not closer._within_expected_drift(verified(0.05, 11.6), chain).accepted  # 1.5 deg allowed
-    off = LoopCloser(replace(config.loop, max_drift_sigmas=0.0))
+    off = LoopCloser(replace(LoopOptions.from_config(config.loop), max_drift_sigmas=0.0))
     assert off._within_expected_drift(verified(0.19, 11.6), chain).accepted
 
 
@@ -496,12 +510,12 @@ def test_resume_is_bit_identical_where_small_splats_amplify_round_off(drift_sequ
 
 @pytest.mark.parametrize("method", ["direct", "rgbd_odometry"])
 def test_dense_rgbd_alignment_recovers_loop_poses_on_a_textured_wall(drift_sequence, method):
-    from mipslam.loop.from_config import registration_options
     from mipslam.loop.registration import register_rgbd_pair
 
-    config = drift_config(drift_sequence)
-    assert registration_options(config.loop).method == "direct"  # the default
-    options = replace(registration_options(config.loop), method=method)
+    config, constants = drift_setup(drift_sequence)
+    registration = drift_loop_options(config, constants).registration_options()
+    assert registration.method == "direct"  # the default
+    options = replace(registration, method=method)
     sequence = make_sequence(config.dataset)
     gt = sequence.gt_T_wc
     # Start 7 cm / 2.4 deg off. Point-to-plane ICP slides along the wall here (errors of decimetres to

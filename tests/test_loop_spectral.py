@@ -1,6 +1,8 @@
 """SA-PGO spectral parts: coherence weights of the odometry chain, Laplacian bases, config mapping."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import math
 
 import numpy as np
@@ -8,7 +10,7 @@ import pytest
 import torch
 
 from mipslam.config import LoopConfig
-from mipslam.loop.from_config import candidate_options, pgo_options, registration_options
+from mipslam.loop.closer import LoopOptions
 from mipslam.loop.pose_graph import PoseGraph
 from mipslam.loop.solver import PGOOptions, optimize_pose_graph
 from mipslam.loop.spectral import (
@@ -117,14 +119,14 @@ def test_spectral_weighting_helps_when_tracking_quality_varies():
     assert mean["weighted"] < 1.25 * mean["oracle"]
 
 
-def test_config_maps_onto_the_options():
-    config = LoopConfig(min_keyframe_gap=7, icp_fitness_threshold=0.4, icp_rmse_threshold=0.03,
-                        spectral_edge_weighting=False, low_frequency_correction=True, num_eigenvectors=5,
-                        full_iterations=2, registration_depth_noise_power=2.0)
-    pgo = pgo_options(config)
+def test_loop_options_map_onto_the_components_options():
+    config = replace(LoopOptions.from_config(LoopConfig(fitness_threshold=0.4), depth_noise_power=2.0),
+                     min_keyframe_gap=7, icp_rmse_threshold=0.03, spectral_edge_weighting=False,
+                     low_frequency_correction=True, num_eigenvectors=5, full_iterations=2)
+    pgo = config.pgo_options()
     assert (pgo.spectral_edge_weighting, pgo.low_frequency_correction, pgo.num_eigenvectors, pgo.full_iterations) == (
         False, True, 5, 2)
-    assert candidate_options(config).min_gap == 7
-    reg = registration_options(config)
+    assert config.candidate_options().min_gap == 7
+    reg = config.registration_options()
     assert (reg.fitness_threshold, reg.rmse_threshold, reg.direct_depth_noise_power) == (0.4, 0.03, 2.0)
     assert not math.isnan(pgo.kernel_scale)

@@ -7,6 +7,7 @@ from dataclasses import replace
 import pytest
 import torch
 
+from mipslam.mapping import MappingOptions
 from mipslam.gaussians import GaussianMap, GaussianOptimizer
 from mipslam.geometry import se3_exp, se3_inverse, se3_log
 from mipslam.mapping import Mapper, MappingView
@@ -28,11 +29,11 @@ def test_densifying_a_view_the_map_already_holds_adds_no_copies(tiny_sequence):
         gmap.opacity_logits.fill_(-3.0)
     view = MappingView(0, frame.color, frame.depth, sequence.gt_T_wc[0], torch.zeros(2), frame.intrinsics,
                        optimize_pose=False)
-    optimizer = GaussianOptimizer.from_config(gmap, config.mapping)
+    optimizer = GaussianOptimizer.from_config(gmap, MappingOptions.from_config(config.mapping))
     before = len(gmap)
-    with_check = Mapper(config.mapping, config.render).densify(gmap, optimizer, view, frame_index=1)
+    with_check = Mapper(MappingOptions.from_config(config.mapping), config.render).densify(gmap, optimizer, view, frame_index=1)
     gmap.remove(torch.arange(len(gmap)) >= before, optimizer)
-    off = replace(config.mapping, add_min_distance_ratio=0.0)
+    off = replace(MappingOptions.from_config(config.mapping), add_min_distance_ratio=0.0)
     without_check = Mapper(off, config.render).densify(gmap, optimizer, view, frame_index=1)
     assert without_check > 0.5 * before  # a second layer over the first
     assert with_check <= 0.05 * without_check, (with_check, without_check)
@@ -44,7 +45,7 @@ def test_mapping_moves_a_perturbed_keyframe_pose_towards_the_truth(one_frame_map
     # perturbation; the default 1e-4 leaves 2.9 mm and 3.6 mrad of its 5.4 / 5.4.
     seq = one_frame_map[0]
     config, sequence, gmap, _, _ = map_of_first_frame(seq, 60)
-    mapping = replace(config.mapping, lr_poses=3e-4)
+    mapping = replace(MappingOptions.from_config(config.mapping), lr_poses=3e-4)
     optimizer = GaussianOptimizer.from_config(gmap, mapping)
     first, second = sequence[0], sequence[1]
     T_wc_true = sequence.gt_T_wc[1]
@@ -63,7 +64,9 @@ def test_mapping_moves_a_perturbed_keyframe_pose_towards_the_truth(one_frame_map
     assert error_after[3:].norm() < 0.5 * error_before[3:].norm(), (error_before, error_after)
 
 
-def test_mapping_a_view_without_the_gaussians_it_cannot_draw_changes_nothing(tiny_sequence):
+def test_mapping_a_view_without_the_gaussians_it_cannot_draw_changes_nothing(tiny_sequence, monkeypatch):
+    from mipslam import rendering
+
     # The map of frame 0 plus a copy 50 m behind the camera: with the frustum margin, mapping renders the
     # view without the copy; with an unbounded margin it projects the copy too (which gets zero gradients).
     # The map after the same Adam steps must agree either way, copy included.
@@ -77,8 +80,9 @@ def test_mapping_a_view_without_the_gaussians_it_cannot_draw_changes_nothing(tin
     ends = []
     for margin in (0.25, 1e6):
         trial = GaussianMap(gmap.detached())
-        optimizer = GaussianOptimizer.from_config(trial, config.mapping)
-        mapper = Mapper(config.mapping, replace(config.render, frustum_margin=margin))
+        optimizer = GaussianOptimizer.from_config(trial, MappingOptions.from_config(config.mapping))
+        monkeypatch.setattr(rendering, "FRUSTUM_MARGIN", margin)
+        mapper = Mapper(MappingOptions.from_config(config.mapping), config.render)
         first, last, _ = mapper.optimize(trial, optimizer, [view], 10, torch.Generator().manual_seed(0))
         ends.append((last, trial.detached()))
     assert ends[0][0] == pytest.approx(ends[1][0], rel=1e-5)
@@ -128,7 +132,7 @@ def test_a_translucent_map_keeps_its_depth_only_with_the_normalised_depth_term(t
     frame, T_wc = sequence[0], sequence.gt_T_wc[0]
     with torch.no_grad():
         gmap.opacity_logits.fill_(0.0)
-    mapping = replace(config.mapping, alpha_color=0.0, isotropy_weight=0.0, lambda_freq=0.0, lr_opacities=0.0,
+    mapping = replace(MappingOptions.from_config(config.mapping), alpha_color=0.0, isotropy_weight=0.0, lambda_freq=0.0, lr_opacities=0.0,
                       lr_scales=0.0, lr_means=2e-3, depth_normalise=normalise, opacity_weight=0.0)
     optimizer = GaussianOptimizer.from_config(gmap, mapping)
     view = MappingView(0, frame.color, frame.depth, T_wc, torch.zeros(2), frame.intrinsics, optimize_pose=False)

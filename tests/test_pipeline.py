@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 import torch
 
+from mipslam.mapping import MappingOptions
 from mipslam.checkpoint import load_latest_checkpoint
 from mipslam.cli import main
 from mipslam.io.ply import read_map_ply
 from mipslam.io.tum import read_tum_trajectory
-from mipslam.pipeline import run_slam
+from mipslam.pipeline import PipelineHooks, run_slam
 from mipslam.state import SLAMState
 from tiny_runs import REPO, TINY, tiny_config
 
@@ -143,13 +144,13 @@ def test_tracked_poses_survive_a_checkpoint_and_old_checkpoints_fall_back_to_the
     config = tiny_config(tiny_sequence, "mapping.lr_poses=1e-3", "keyframes.covisibility_threshold=1.0")
     run_slam(config, tmp_path / "run", evaluate=False)
     checkpoint = load_latest_checkpoint(tmp_path / "run" / "checkpoints")
-    state = SLAMState.from_checkpoint(checkpoint.tensors, checkpoint.metadata, config.mapping, torch.device("cpu"))
+    state = SLAMState.from_checkpoint(checkpoint.tensors, checkpoint.metadata, MappingOptions.from_config(config.mapping), torch.device("cpu"))
     moved = [float((f.T_wc - f.T_wc_tracked).abs().max()) for f in state.frames if f.keyframe_id > 0]
     assert moved and max(moved) > 1e-4, moved
     torch.testing.assert_close(torch.stack([f.T_wc_tracked for f in state.frames]),
                                checkpoint.tensors["frames.T_wc_tracked"], rtol=0, atol=0)
     old = {k: v for k, v in checkpoint.tensors.items() if k != "frames.T_wc_tracked"}
-    state = SLAMState.from_checkpoint(old, checkpoint.metadata, config.mapping, torch.device("cpu"))
+    state = SLAMState.from_checkpoint(old, checkpoint.metadata, MappingOptions.from_config(config.mapping), torch.device("cpu"))
     for frame in state.frames:
         torch.testing.assert_close(frame.T_wc_tracked, frame.T_wc, rtol=0, atol=0)
 
@@ -164,10 +165,11 @@ def test_depth_taken_late_and_a_rolling_shutter_are_undone_and_resume_exactly(tm
     data_synth.generate(sequence, layout="tum", trajectory="loop", width=40, height=30, frames=6, seed=0,
                         supersample=2, depth_delay=0.4, rolling_shutter=0.6)
     full_dir, split_dir, off_dir = tmp_path / "full", tmp_path / "split", tmp_path / "off"
-    on = ("tracking.align_depth_time=true", f"dataset.rolling_shutter_readout_s={0.6 / 30}")
-    run_slam(tiny_config(sequence, *on), full_dir, evaluate=False)
-    run_slam(tiny_config(sequence, *on, "dataset.max_frames=4"), split_dir, evaluate=False)
-    run_slam(tiny_config(sequence, *on), split_dir, resume=True, evaluate=False)
+    on = (f"dataset.rolling_shutter_readout_s={0.6 / 30}",)
+    depth_time = PipelineHooks(constants={"tracking.align_depth_time": True})  # a tracking constant, off in a run
+    run_slam(tiny_config(sequence, *on), full_dir, evaluate=False, hooks=depth_time)
+    run_slam(tiny_config(sequence, *on, "dataset.max_frames=4"), split_dir, evaluate=False, hooks=depth_time)
+    run_slam(tiny_config(sequence, *on), split_dir, resume=True, evaluate=False, hooks=depth_time)
     full = read_tum_trajectory(full_dir / "traj_est.txt")
     np.testing.assert_allclose(read_tum_trajectory(split_dir / "traj_est.txt").T_wc, full.T_wc, atol=1e-6)
     torch.testing.assert_close(read_map_ply(split_dir / "map.ply").means, read_map_ply(full_dir / "map.ply").means,

@@ -16,6 +16,7 @@ import torch
 import yaml
 
 import data_synth
+from mipslam.mapping import MappingOptions
 from mipslam import refine_run as refine_module
 from mipslam.checkpoint import list_checkpoints, load_latest_checkpoint
 from mipslam.cli import main
@@ -23,7 +24,7 @@ from mipslam.evaluation.run_files import read_run_config
 from mipslam.io.ply import read_map_ply, write_map_ply
 from mipslam.io.run_folder import RunFolder, prepare_new_run_folder
 from mipslam.io.tum import read_tum_trajectory
-from mipslam.pipeline import run_slam
+from mipslam.pipeline import PipelineHooks, run_slam
 from mipslam.refinement import KeyframeRefiner, refine_options
 from mipslam.geometry import se3_inverse
 from mipslam.losses.photometric import rgbd_masks
@@ -39,8 +40,8 @@ def finished_run(tmp_path_factory) -> Path:
     data_synth.generate(sequence, layout="tum", trajectory="loop", width=80, height=60, frames=10, seed=0,
                         supersample=2, rolling_shutter=0.3)
     config = tiny_config(sequence, "dataset.downscale=2", "dataset.rolling_shutter_readout_s=0.01",
-                         "keyframes.covisibility_threshold=0.94", "keyframes.translation_ratio=0.05")
-    run_slam(config, root / "run")
+                         "keyframes.covisibility_threshold=0.94")
+    run_slam(config, root / "run", hooks=PipelineHooks(constants={"keyframes.translation_ratio": 0.05}))
     return root / "run"
 
 
@@ -123,13 +124,13 @@ def test_refinement_lowers_the_training_view_loss(run_dir):
 
     def mean_loss(path: Path) -> float:
         gmap = read_map_ply(path)
-        refiner = KeyframeRefiner(gmap, refine_module.GaussianOptimizer.from_config(gmap, config.mapping),
+        refiner = KeyframeRefiner(gmap, refine_module.GaussianOptimizer.from_config(gmap, MappingOptions.from_config(config.mapping)),
                                   start.keyframes, load, refine_options(config), config.render, torch.Generator())
         with torch.no_grad():
             losses = []
             for keyframe in start.keyframes:
                 image = load(keyframe)
-                masks = rgbd_masks(image.color, image.depth, max_depth=config.mapping.max_depth)
+                masks = rgbd_masks(image.color, image.depth, max_depth=MappingOptions.max_depth)
                 T_cw = se3_inverse(keyframe.T_wc).to(torch.float32)
                 losses.append(float(refiner.loss(image, masks, T_cw, keyframe.exposure, None)))
         return sum(losses) / len(losses)

@@ -4,6 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from mipslam.mapping import MappingOptions
 from mipslam.gaussians import GaussianMap, GaussianOptimizer
 from mipslam.geometry import se3_inverse
 from mipslam.refinement import KeyframeImage, KeyframeRefiner, RefineKeyframe, RefineOptions
@@ -26,7 +27,7 @@ def two_view_problem(tmp_path_factory):
 def _refiner(problem, options: RefineOptions, seed: int = 0) -> KeyframeRefiner:
     config, params, frames, keyframes = problem
     gmap = GaussianMap(params)
-    optimizer = GaussianOptimizer.from_config(gmap, config.mapping)
+    optimizer = GaussianOptimizer.from_config(gmap, MappingOptions.from_config(config.mapping))
 
     def load(keyframe: RefineKeyframe) -> KeyframeImage:
         frame = frames[keyframe.frame_index]

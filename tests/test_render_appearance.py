@@ -6,7 +6,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from mipslam.config import MappingConfig, RenderConfig
+from mipslam.mapping import MappingOptions
+from mipslam.config import RenderConfig
 from mipslam.render import cpu as cpu_backend
 from mipslam.render import rasterize
 from test_render_cpu import camera, mixed_scene
@@ -97,7 +98,7 @@ def test_the_frequency_loss_moves_the_geometry_only_when_configured(backend, tin
     render = RenderConfig(backend=backend)
 
     def gradients(lambda_freq, when):
-        mapper = Mapper(MappingConfig(lambda_freq=lambda_freq, freq_moves_geometry=when), render)
+        mapper = Mapper(MappingOptions(lambda_freq=lambda_freq, freq_moves_geometry=when), render)
         for t in gmap.parameters().values():
             t.grad = None
         pose = T_cw.clone().requires_grad_()
@@ -147,7 +148,7 @@ def test_the_config_refuses_an_unknown_target():
 def test_the_frequency_loss_moves_the_geometry_by_default_and_on_real_cameras_only_at_the_end():
     from mipslam.config import load_config
 
-    assert MappingConfig().freq_moves_geometry == "always"
+    assert MappingOptions().freq_moves_geometry == "always"
     assert load_config("tum", preset="balanced").mapping.freq_moves_geometry == "final"
 
 

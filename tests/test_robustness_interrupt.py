@@ -47,7 +47,7 @@ def test_ctrl_c_inside_mapping_saves_a_checkpoint_that_resumes_to_the_same_run(s
 
 
 @pytest.mark.slow
-def test_corrupt_newest_checkpoint_falls_back_and_the_run_still_ends_identical(setup, tmp_path, caplog):
+def test_corrupt_newest_checkpoint_falls_back_and_the_run_still_ends_identical(setup, tmp_path, caplog, monkeypatch):
     """Checkpoints after frames 2, 4 and 5; the newest is truncated (a power cut on a file system that
     lies about fsync): --resume warns, continues from frame 4's and ends as the uninterrupted run."""
     import logging
@@ -57,7 +57,10 @@ def test_corrupt_newest_checkpoint_falls_back_and_the_run_still_ends_identical(s
     from mipslam.pipeline import run_slam
 
     run_dir = tmp_path / "run"
-    overrides = [f"dataset.path={setup.sequence}", *setup.settings, "run.keep_checkpoints=3"]
+    from mipslam import run_control
+
+    monkeypatch.setattr(run_control, "KEEP_CHECKPOINTS", 3)
+    overrides = [f"dataset.path={setup.sequence}", *setup.settings]
     run_slam(load_config(setup.config, overrides=[*overrides, "dataset.max_frames=5"]), run_dir, evaluate=False)
     files = list_checkpoints(run_dir / "checkpoints")
     assert len(files) == 3

@@ -8,30 +8,26 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from mipslam.config import RenderConfig, TrackingConfig, load_config
+from mipslam.mapping import MappingOptions
+from mipslam.tracking import TrackingOptions
+from mipslam.config import RenderConfig, load_config
 from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry import se3_exp, se3_inverse, se3_log
 from mipslam.geometry.direct import DirectResult
 from mipslam.pipeline import run_slam
-from mipslam.rendering import frustum_subset, render_view
+from mipslam.rendering import FRUSTUM_MARGIN, frustum_subset, render_view
 import mipslam.rendering as rendering_module
 import mipslam.tracking as tracking
 from mipslam.state import FrameRecord, SLAMState
 from mipslam.tracking import Tracker, TrackingResult, constant_velocity_prediction, relocalise
 from mipslam.types import Frame, Intrinsics
 from mipslam.datasets import make_sequence
-from tiny_runs import map_of_first_frame, tiny_config
+from tiny_runs import map_of_first_frame, tiny_config, tiny_tracking
 
 
-def _preset_tracking_overrides(preset: str) -> list[str]:
-    """The preset's optimiser keys as overrides (read from the built-in configs, so the tests follow a retune)."""
-    tracking = load_config("synthetic", preset=preset).tracking
-    keys = ("optimizer", "lr_translation", "lr_rotation", "convergence_threshold")
-    return [f"tracking.{key}={getattr(tracking, key)}" for key in keys]
-
-
-# adam is the default; rprop as the balanced preset sets it.
-_OPTIMIZERS = {"adam": [], "rprop": _preset_tracking_overrides("balanced")}
+# rprop is tracking's optimiser (TrackingOptions); adam, which no shipped config uses, as the base config had it.
+_OPTIMIZERS = {"adam": ["tracking.optimizer=adam", "tracking.lr_translation=2e-3", "tracking.lr_rotation=4e-3",
+                        "tracking.convergence_threshold=1e-5"], "rprop": []}
 
 
 @pytest.mark.parametrize("optimizer,exposure,render_mode", [
@@ -44,8 +40,8 @@ def test_tracking_recovers_a_known_pose_perturbation(one_frame_map, optimizer, e
     T_wc_true = sequence.gt_T_wc[0]
     perturbation = se3_exp(torch.tensor([0.015, -0.01, 0.01, 0.01, -0.015, 0.005], dtype=torch.float64))
     T_wc_init = T_wc_true @ perturbation
-    settings = tiny_config(seq, "tracking.iterations=80", f"tracking.use_exposure={str(exposure).lower()}",
-                           *_OPTIMIZERS[optimizer]).tracking
+    settings = tiny_tracking(seq, "tracking.iterations=80", f"tracking.use_exposure={str(exposure).lower()}",
+                             *_OPTIMIZERS[optimizer])
     settings = replace(settings, render_mode=render_mode)
     assert settings.optimizer == optimizer and config.render.mode == "eaa"
     tracker = Tracker(settings, config.render)
@@ -69,7 +65,7 @@ def test_rprop_tracking_stops_early_at_the_pose_adam_reaches_with_every_iteratio
     T_wc_true = sequence.gt_T_wc[0]
     ends = {}
     for name, extra in _OPTIMIZERS.items():
-        settings = tiny_config(seq, "tracking.iterations=80", *extra).tracking
+        settings = tiny_tracking(seq, "tracking.iterations=80", *extra)
         result = Tracker(settings, config.render).track(gaussians, sequence[0], T_wc_true, running_loss=None)
         assert result.ok
         ends[name] = (result.iterations, se3_log(se3_inverse(T_wc_true) @ result.T_wc))
@@ -89,7 +85,7 @@ def test_tracking_against_the_frustum_subset_equals_tracking_against_the_whole_m
                               *(torch.cat([t, t]) for t in (gaussians.quats, gaussians.scales, gaussians.opacities,
                                                             gaussians.colors)))
     T_wc_init = T_wc_true @ se3_exp(torch.tensor([0.01, -0.01, 0.005, 0.01, -0.01, 0.005], dtype=torch.float64))
-    settings = tiny_config(seq, "tracking.iterations=30").tracking
+    settings = tiny_tracking(seq, "tracking.iterations=30")
     alone = Tracker(settings, config.render).track(gaussians, frame, T_wc_init, running_loss=None)
     culled = Tracker(settings, config.render).track(doubled, frame, T_wc_init, running_loss=None)
     assert culled.ok and culled.iterations == alone.iterations
@@ -107,7 +103,7 @@ def test_frustum_subset_renders_like_the_whole_map_from_nearby_poses():
     intrinsics = Intrinsics(fx=40.0, fy=40.0, cx=31.5, cy=23.5, width=64, height=48)
     config = RenderConfig()
     T_cw = torch.eye(4)
-    assert config.frustum_margin == 0.25
+    assert FRUSTUM_MARGIN == 0.25
     subset = frustum_subset(gaussians, T_cw, intrinsics, config)
     assert 0 < len(subset) < 0.5 * n  # the view sees well under half of a sphere around it
     nearby = se3_exp(torch.tensor([0.01, -0.01, 0.01, 0.02, -0.015, 0.01], dtype=torch.float64)).float()  # ~1.5 deg
@@ -157,7 +153,7 @@ def test_the_motion_model_moves_with_a_refined_previous_pose_once():
 def test_the_coarse_levels_get_the_configured_share_of_the_iterations(one_frame_map):
     _, config, sequence, _ = one_frame_map
     for share, expected in ((0.5, [20, 20]), (0.25, [10, 30]), (0.0, [40])):
-        settings = replace(config.tracking, iterations=40, coarse_to_fine=(0.5,), coarse_share=share)
+        settings = replace(TrackingOptions.from_config(config.tracking), iterations=40, coarse_to_fine=(0.5,), coarse_share=share)
         levels = Tracker(settings, config.render)._levels(sequence[0])
         assert [level.iterations for level in levels] == expected, share
         assert levels[-1].intrinsics == sequence[0].intrinsics  # full resolution last
@@ -165,7 +161,7 @@ def test_the_coarse_levels_get_the_configured_share_of_the_iterations(one_frame_
 
 def test_coarse_levels_render_in_the_coarse_mode_and_the_finest_in_the_tracking_mode(one_frame_map, monkeypatch):
     _, config, sequence, gaussians = one_frame_map
-    settings = replace(config.tracking, iterations=6, coarse_to_fine=(0.5,), render_mode="eaa",
+    settings = replace(TrackingOptions.from_config(config.tracking), iterations=6, coarse_to_fine=(0.5,), render_mode="eaa",
                        coarse_render_mode="mip", convergence_threshold=0.0)
     tracker = Tracker(settings, config.render)
     assert [level.render_mode for level in tracker._levels(sequence[0])] == ["mip", "eaa"]
@@ -192,7 +188,7 @@ def test_coarse_levels_render_in_the_coarse_mode_and_the_finest_in_the_tracking_
 
 def test_the_first_steps_of_the_finest_level_render_in_the_coarse_mode(one_frame_map, monkeypatch):
     _, config, sequence, gaussians = one_frame_map
-    settings = replace(config.tracking, iterations=6, coarse_to_fine=(), render_mode="eaa", coarse_render_mode="mip",
+    settings = replace(TrackingOptions.from_config(config.tracking), iterations=6, coarse_to_fine=(), render_mode="eaa", coarse_render_mode="mip",
                        coarse_mode_iterations=2, direct_iterations=0, convergence_threshold=0.0)
     tracker = Tracker(settings, config.render)
     levels = tracker._levels(sequence[0])
@@ -220,7 +216,7 @@ def test_the_first_steps_of_the_finest_level_render_in_the_coarse_mode(one_frame
 def test_relocalisation_runs_above_the_loss_ratio_and_accepts_the_configured_jump(one_frame_map, monkeypatch):
     _, config, sequence, gaussians = one_frame_map
     frame = sequence[0]
-    state = SLAMState.initial(config.mapping, 0, torch.device("cpu"))
+    state = SLAMState.initial(MappingOptions.from_config(config.mapping), 0, torch.device("cpu"))
     state.frames.append(FrameRecord(0, 0.0, sequence.gt_T_wc[0], torch.zeros(2), "ok", 0.01, 1, 0, -1,
                                     sequence.gt_T_wc[0]))
     state.running_loss = 0.01
@@ -231,7 +227,7 @@ def test_relocalisation_runs_above_the_loss_ratio_and_accepts_the_configured_jum
         return SimpleNamespace(accepted=False)
 
     monkeypatch.setattr(tracking, "register_rgbd_odometry", alignment)
-    settings = replace(config.tracking, relocalise_loss_ratio=2.0, relocalise_max_m=0.3, relocalise_max_deg=20.0)
+    settings = replace(TrackingOptions.from_config(config.tracking), relocalise_loss_ratio=2.0, relocalise_max_m=0.3, relocalise_max_deg=20.0)
     tracker = Tracker(settings, config.render)
     usual = TrackingResult(sequence.gt_T_wc[0], torch.zeros(2), 0.015, 5, 1.0, True, "ok")
     assert relocalise(tracker, state, frame, {0: frame}, gaussians, usual) is usual and not asked
@@ -245,7 +241,7 @@ def test_map_coverage_is_the_share_of_valid_depth_the_map_renders(one_frame_map)
     # covers only about the right half, which is what keyframes.min_map_coverage reads.
     seq, config, sequence, gaussians = one_frame_map
     frame, T_wc_true = sequence[0], sequence.gt_T_wc[0]
-    settings = tiny_config(seq, "tracking.iterations=4").tracking
+    settings = tiny_tracking(seq, "tracking.iterations=4")
     whole = Tracker(settings, config.render).track(gaussians, frame, T_wc_true, running_loss=None)
     assert whole.ok and whole.map_coverage > 0.95
     u = (gaussians.means - T_wc_true[:3, 3].float()) @ T_wc_true[:3, :3].float()  # camera frame, OpenCV axes
@@ -273,10 +269,10 @@ def test_dense_start_joins_the_candidates_where_the_features_give_none(one_frame
     monkeypatch.setattr(tracking, "register_rgbd_odometry", alignment)
     errors = {}
     for dense in (False, True):
-        state = SLAMState.initial(config.mapping, 0, torch.device("cpu"))
+        state = SLAMState.initial(MappingOptions.from_config(config.mapping), 0, torch.device("cpu"))
         state.gaussian_map = gmap
         state.frames.append(FrameRecord(1, 0.0, T_wc_off, torch.zeros(2), "ok", 0.01, 4, -1, 0, T_wc_off))
-        settings = replace(config.tracking, iterations=4, dense_start=dense)
+        settings = replace(TrackingOptions.from_config(config.tracking), iterations=4, dense_start=dense)
         result = tracking.track_frame(Tracker(settings, config.render), state, frame, {1: frame}, T_wc_true)
         errors[dense] = float(se3_log(se3_inverse(T_wc_true) @ result.T_wc)[:3].norm())
     assert len(asked) == 1  # only with dense_start, from the motion model's prediction (the reference's pose)
@@ -294,7 +290,7 @@ def test_dense_alignment_to_the_previous_frame_recovers_a_large_motion(tmp_path)
     config = tiny_config(tmp_path / "seq")
     sequence = make_sequence(config.dataset)
     T_wc_reference, T_wc_true = sequence.gt_T_wc[0], sequence.gt_T_wc[4]
-    aligned = tracking.align_to_frame(config.tracking, sequence[0], T_wc_reference, sequence[4], T_wc_reference)
+    aligned = tracking.align_to_frame(TrackingOptions.from_config(config.tracking), sequence[0], T_wc_reference, sequence[4], T_wc_reference)
     assert aligned is not None
     before = se3_log(se3_inverse(T_wc_true) @ T_wc_reference)
     after = se3_log(se3_inverse(T_wc_true) @ aligned)
@@ -310,7 +306,7 @@ def test_direct_alignment_starts_the_gradient_steps_close_to_the_pose(one_frame_
     T_wc_true = sequence.gt_T_wc[0]
     perturbation = se3_exp(torch.tensor([0.015, -0.01, 0.01, 0.01, -0.015, 0.005], dtype=torch.float64))
     T_wc_init = T_wc_true @ perturbation
-    settings = tiny_config(seq, "tracking.iterations=4", *_OPTIMIZERS["rprop"]).tracking
+    settings = tiny_tracking(seq, "tracking.iterations=4", *_OPTIMIZERS["rprop"])
     errors = {}
     for name, direct_iterations in (("gradient steps", 0), ("direct + gradient steps", 8)):
         tracker = Tracker(replace(settings, direct_iterations=direct_iterations, direct_renders=2), config.render)
@@ -329,7 +325,7 @@ def test_a_direct_alignment_that_renders_worse_ends_at_the_best_render(one_frame
     seq, config, sequence, gaussians = one_frame_map
     frame = sequence[0]
     T_wc_true = sequence.gt_T_wc[0]
-    settings = tiny_config(seq, "tracking.iterations=1", *_OPTIMIZERS["rprop"]).tracking
+    settings = tiny_tracking(seq, "tracking.iterations=1", *_OPTIMIZERS["rprop"])
     tracker = Tracker(replace(settings, direct_iterations=8, direct_renders=3), config.render)
     away = se3_exp(torch.tensor([0.05, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64))
 
@@ -349,7 +345,7 @@ def test_a_direct_alignment_that_renders_worse_ends_at_the_best_render(one_frame
 def test_the_alignment_reads_depth_residuals_in_the_configured_units_of_sensor_noise(one_frame_map, monkeypatch,
                                                                                       power):
     seq, config, sequence, gaussians = one_frame_map
-    settings = tiny_config(seq, "tracking.iterations=1", *_OPTIMIZERS["rprop"]).tracking
+    settings = tiny_tracking(seq, "tracking.iterations=1", *_OPTIMIZERS["rprop"])
     tracker = Tracker(replace(settings, direct_iterations=4, direct_depth_noise_power=power), config.render)
     seen_options = []
 
@@ -379,7 +375,7 @@ def test_the_direct_alignment_runs_compiled_where_the_render_backend_does():
 class _JudgedStarts:
     """A tracker that judged two starts of frame 0 (2 cm / 0.6 deg and 0.5 cm off), with render_view counted."""
 
-    settings: TrackingConfig
+    settings: TrackingOptions
     render_config: RenderConfig
     gaussians: ActivatedGaussians
     sequence: object  # the run's frames (frame 0 is ``frame``)
@@ -396,7 +392,7 @@ def _judge_two_starts(one_frame_map_128, monkeypatch) -> _JudgedStarts:
     T_wc_true = sequence.gt_T_wc[0]
     candidates = [T_wc_true @ se3_exp(torch.tensor([0.02, 0.0, 0.0, 0.0, 0.01, 0.0], dtype=torch.float64)),
                   T_wc_true @ se3_exp(torch.tensor([0.005, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64))]
-    settings = replace(tiny_config(seq, "tracking.iterations=4", *_OPTIMIZERS["rprop"]).tracking,
+    settings = replace(tiny_tracking(seq, "tracking.iterations=4", *_OPTIMIZERS["rprop"]),
                        direct_iterations=8, start_margin=0.0)
     renders = []
     real_render = tracking.render_view
@@ -449,8 +445,8 @@ def test_compiled_steps_track_as_autograd(one_frame_map, monkeypatch, exposure, 
     frame = sequence[0]
     perturbation = se3_exp(torch.tensor([0.01, -0.008, 0.006, 0.008, -0.01, 0.004], dtype=torch.float64))
     T_wc_init = sequence.gt_T_wc[0] @ perturbation
-    settings = tiny_config(seq, "tracking.iterations=12", f"tracking.use_exposure={str(exposure).lower()}",
-                           *_OPTIMIZERS[optimizer]).tracking
+    settings = tiny_tracking(seq, "tracking.iterations=12", f"tracking.use_exposure={str(exposure).lower()}",
+                             *_OPTIMIZERS[optimizer])
     compiled = Tracker(settings, config.render).track(gaussians, frame, T_wc_init, running_loss=None)
     monkeypatch.setattr(tracking, "render_view_pose_only", lambda *args, **kwargs: None)
     reference = Tracker(settings, config.render).track(gaussians, frame, T_wc_init, running_loss=None)

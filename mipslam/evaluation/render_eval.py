@@ -66,8 +66,8 @@ from mipslam.io.ply import read_map_ply
 from mipslam.evaluation.run_files import read_run_config, read_run_json, relative_name, run_file
 from mipslam.io.run_folder import RunFolder
 from mipslam.io.tum import read_tum_trajectory
-from mipslam.render import MODES, RenderOutput
-from mipslam.rendering import render_view
+from mipslam.render import MODES, RenderOptions, RenderOutput
+from mipslam.rendering import FILTER_3D_SCALE, render_view
 from mipslam.types import Intrinsics
 
 logger = logging.getLogger(__name__)
@@ -725,13 +725,13 @@ def _protocol(context: RunRenderContext, options: RenderEvalOptions, modes, scal
         },
         "modes": list(modes),
         "renderer": {"run_mode": render_cfg.mode, "backend": render_cfg.backend, "filter_3d": render_cfg.filter_3d,
-                     **({"filter_3d_variance": f"{render_cfg.filter_3d_scale} / nu^2 per Gaussian, nu = its highest "
+                     **({"filter_3d_variance": f"{FILTER_3D_SCALE} / nu^2 per Gaussian, nu = its highest "
                                                "sampling rate (f / z) among the keyframes that trained it "
                                                "(map.ply max_sampling_rate), the same at every scale"}
                         if render_cfg.filter_3d else {}),
-                     "eaa_max_nodes": render_cfg.eaa_max_nodes, "eaa_gamma": render_cfg.eaa_gamma,
-                     "eaa_eta": render_cfg.eaa_eta, "eaa_tau": render_cfg.eaa_tau,
-                     "eaa_k_sigma": render_cfg.eaa_k_sigma, "near_plane": render_cfg.near_plane},
+                     "eaa_max_nodes": render_cfg.eaa_max_nodes, "eaa_gamma": RenderOptions.eaa_gamma,
+                     "eaa_eta": RenderOptions.eaa_eta, "eaa_tau": RenderOptions.eaa_tau,
+                     "eaa_k_sigma": RenderOptions.k_sigma, "near_plane": RenderOptions.near_plane},
         "ground_truth": ground_truth.describe(),
         "metrics": {
             "psnr": "10 log10(1 / MSE) over all pixels and channels of the rendered colour (clamped to [0, 1]); "

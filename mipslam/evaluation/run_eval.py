@@ -28,6 +28,9 @@ from mipslam.io.tum import read_tum_trajectory
 logger = logging.getLogger(__name__)
 
 DEFAULT_METRICS_FILE = "metrics.json"
+# Seconds within which an estimated pose and a ground-truth pose are taken as the same instant (timestamped
+# trajectories; by frame index otherwise).
+TRAJECTORY_ASSOCIATION_S = 0.02
 
 
 def metrics_file_name(label: str | None) -> str:
@@ -120,7 +123,7 @@ def evaluate_run(run_dir: str | Path, *, alignment: str | None = None, associati
     gt = read_tum_trajectory(folder.traj_gt, allow_duplicate_timestamps=True)
     est = read_tum_trajectory(traj_path)
     options = dict(association=association or "timestamp",
-                   max_diff=max_diff if max_diff is not None else (0.5 if by_index else config.eval.association_tolerance_s))
+                   max_diff=max_diff if max_diff is not None else (0.5 if by_index else TRAJECTORY_ASSOCIATION_S))
     requested = alignment or config.eval.alignment
     try:
         trajectory = evaluate_trajectory(gt, est, alignment=requested, **options).to_dict()

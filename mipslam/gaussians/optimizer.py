@@ -51,7 +51,7 @@ class GaussianOptimizer:
 
     @classmethod
     def from_config(cls, gaussian_map: GaussianMap, mapping_config) -> "GaussianOptimizer":
-        """Learning rates from a ``mipslam.config.MappingConfig`` (lr_means, lr_quats, lr_scales,
+        """Learning rates from a :class:`mipslam.mapping.MappingOptions` (lr_means, lr_quats, lr_scales,
         lr_opacities, lr_colors)."""
         return cls(gaussian_map, {
             "means": mapping_config.lr_means,

@@ -1,6 +1,6 @@
 """The loop-closure stage of the frame loop: pose graph, loop detection, verification and SA-PGO.
 
-:class:`LoopCloser` is built from the ``loop:`` config section alone. The pipeline calls
+:class:`LoopCloser` is built from its :class:`LoopOptions` (the ``loop:`` config section and its constants). The pipeline calls
 :meth:`LoopCloser.process_keyframe` after mapping on every keyframe k (docs/pgo.md, "Loop closure
 in the SLAM loop"):
 
@@ -21,7 +21,7 @@ in the SLAM loop"):
    above ``consistent_chi2`` and a residual above ``min_correction_m`` or ``min_correction_deg``;
    edges that agree join the graph without an optimisation, which keeps a
    revisited route from re-optimising the whole graph on every keyframe), the graph is optimised
-   (:func:`optimize_pose_graph_window` with :func:`mipslam.loop.from_config.pgo_options`: the newest
+   (:func:`optimize_pose_graph_window` with :meth:`LoopOptions.pgo_options`: the newest
    ``pgo_window_keyframes`` keyframes are free, the older ones they connect to are fixed anchors,
    so the cost per optimisation is bounded). The odometry measurements are refreshed from the
    current keyframe poses first, so the optimisation only distributes the loop error along the
@@ -43,20 +43,19 @@ import logging
 import math
 import time
 from dataclasses import asdict, dataclass, field, replace
-from typing import TYPE_CHECKING, Any, Callable, NamedTuple
+from typing import TYPE_CHECKING, Any, Callable, Literal, NamedTuple
 
 import torch
 
-from mipslam.config import LoopConfig
+from mipslam.config import LoopConfig, section_options
 from mipslam.errors import CheckpointError, MipslamError
 from mipslam.evaluation.image_metrics import psnr
 from mipslam.geometry import rotation_angle, se3_inverse
 from mipslam.losses.photometric import apply_affine_exposure
-from mipslam.loop.descriptors import DescriptorOptions, global_descriptor, select_loop_candidates
-from mipslam.loop.from_config import candidate_options, pgo_options, registration_options
+from mipslam.loop.descriptors import CandidateOptions, DescriptorOptions, global_descriptor, select_loop_candidates
 from mipslam.loop.pose_graph import PoseGraph, edge_residuals, mahalanobis_sq
-from mipslam.loop.registration import RegistrationResult, register_rgbd_pair
-from mipslam.loop.solver import PGOResult, optimize_pose_graph_window
+from mipslam.loop.registration import RegistrationOptions, RegistrationResult, register_rgbd_pair
+from mipslam.loop.solver import PGOOptions, PGOResult, optimize_pose_graph_window
 from mipslam.mapping import Mapper, refine_after_correction
 from mipslam.observer import Observer
 from mipslam.rendering import render_view
@@ -91,7 +90,7 @@ class LoopState:
     graph: pose graph whose node k is keyframe k (poses are the estimates of the last update)
     descriptors: global descriptor of every keyframe, float32 CPU   # [K, D]
     recent_corrections: the corrections implied by the recent keyframes' verified loop edges, the evidence a
-        later edge is confirmed by (``loop.confirm_keyframes``): rows (query keyframe, the world-frame correction
+        later edge is confirmed by (``LoopOptions.confirm_keyframes``): rows (query keyframe, the world-frame correction
         ``C = T_i Z_ik T_k^-1`` of :func:`implied_corrections`, row-major 4x4), float64 CPU   # [P, 17]
     """
 
@@ -344,20 +343,122 @@ def corrections_agree(C_a: torch.Tensor, C_b: torch.Tensor, T_wc: torch.Tensor, 
             and float(rotation_angle(D[:3, :3])) <= max(tolerance_rad, relative * size_r))
 
 
+@dataclass(frozen=True)
+class LoopOptions:
+    """Everything the loop stage reads: the ``loop`` config section's keys (defaults there), the sensor's depth
+    noise, and the stage's constants (defined here; evidence in docs/pgo.md and docs/tracking.md), with the
+    option objects of the pure components they make (:meth:`registration_options`, :meth:`pgo_options`,
+    :meth:`candidate_options`). Built from the config by :meth:`from_config`."""
+
+    enabled: bool = LoopConfig.enabled
+    fitness_threshold: float = LoopConfig.fitness_threshold  # registration: fraction of points with a correspondence
+    # The sensor's depth noise power p (dataset.depth_noise_power): direct verification's depth residuals in units
+    # of z^p (0: metres)
+    depth_noise_power: float = 0.0
+    # a loop candidate is at least this many keyframes older than the query
+    min_keyframe_gap: int = CandidateOptions.min_gap
+    # verification method: dense RGB-D alignment, tracking's Gauss-Newton (direct) or Open3D's (rgbd_odometry),
+    # the most robust on the room scenes; direct verifies the same candidates 5x faster (docs/pgo.md)
+    registration: Literal["direct", "rgbd_odometry", "point_to_plane", "colored"] = "direct"
+    icp_rmse_threshold: float = RegistrationOptions.rmse_threshold  # verification: inlier RMSE, metres
+    # finest voxel of ICP and of the fitness/RMSE checks (ICP starts at 2x)
+    icp_voxel_m: float = RegistrationOptions.voxel_sizes[-1]
+    icp_pixel_stride: int = RegistrationOptions.pixel_stride  # every n-th pixel of each keyframe goes into the clouds
+    # odometry edge (keyframe k-1 -> k) standard deviation: floor + drift_ratio * distance (rotation)
+    # travelled since keyframe k-1, divided by sqrt(tracking quality), quality = running tracking
+    # loss / this keyframe's loss, in [0.1, 1]
+    odometry_sigma_m: float = 0.01
+    odometry_sigma_deg: float = 0.5
+    odometry_drift_ratio: float = 0.05
+    # A loop edge's covariance is the registration's plus this floor (standard deviations, per axis): Open3D's
+    # information claims millimetres, and a pose graph that believes it bends the odometry chain at its weakest
+    # link (docs/tracking.md, "Loop closure"); 0 and 0: the registration's information alone.
+    loop_sigma_m: float = 0.0
+    loop_sigma_deg: float = 0.0
+    # SA-PGO's two switches (on; PGOOptions' defaults are the plain full-LM baseline they are measured against)
+    spectral_edge_weighting: bool = True
+    low_frequency_correction: bool = True
+    num_eigenvectors: int = PGOOptions.num_eigenvectors  # low-frequency basis size K
+    full_iterations: int = PGOOptions.full_iterations  # full LM iterations after the subspace stage
+    # Mapping steps over the loop's keyframes right after the map moved with its anchors: Gaussians
+    # that mapping had pulled towards drifted views do not move back with any anchor; this re-fits them.
+    refine_iterations: int = 20
+    # Verification also rejects a registration that moved the current estimate by more than this many
+    # standard deviations of the drift the odometry edges allow over the keyframe path from the candidate
+    # to the query (odometry_sigma + odometry_drift_ratio * path, translation and rotation): a loop 20
+    # keyframes back cannot need a 20 cm correction. With one loop edge the pose graph has nothing to
+    # outvote a wrong one. 0 turns the check off.
+    max_drift_sigmas: float = 3.0
+    # New loop edges that already agree with the current poses (every e^T Omega e at most this, chi-square
+    # with 6 dof; 12.6 is its 95% quantile) join the graph without an optimisation: on a revisited route
+    # nearly every keyframe verifies a loop, and re-optimising the whole graph for each made the pose-graph
+    # time per frame grow with the run's length. 0 optimises on every new loop edge.
+    consistent_chi2: float = 12.6
+    # ... as do edges whose disagreement is below what tracking resolves (the registration information
+    # claims millimetres; re-optimising for a 1-2 cm residual on every revisit keyframe only churns the map).
+    min_correction_m: float = 0.02
+    min_correction_deg: float = 1.0
+    # A loop edge that disagrees with the current poses enters the graph only when a second registration implies
+    # the same correction: another verified loop edge of this keyframe (to a different old keyframe) or of one of
+    # the previous `confirm_keyframes` keyframes (ORB-SLAM's consistency check over consecutive keyframes). Real
+    # drift moves neighbouring keyframes alike; registration noise does not. Two corrections C = T_i Z_ik T_k^-1
+    # agree when, seen from keyframe k, they differ by at most max(confirm_tolerance_m, confirm_relative x the
+    # smaller one) in translation and likewise in rotation. 0 turns the check off (every verified edge may
+    # trigger the optimisation). docs/tracking.md, "Loop closure".
+    confirm_keyframes: int = 2
+    confirm_tolerance_m: float = 0.01
+    confirm_tolerance_deg: float = 0.5
+    confirm_relative: float = 0.5
+    # The pose-graph optimisation frees only the newest keyframes (older ones that share an edge with
+    # them stay fixed as anchors); 0 frees the whole graph. A whole-graph solve costs time in proportion
+    # to the keyframes, and a revisited room optimises every other keyframe: on a 2000-frame run the
+    # optimiser's time per frame grew 7x over 8 laps (docs/robustness.md, "Long runs").
+    pgo_window_keyframes: int = 200
+    # An applied correction is undone (and its new loop edges leave the graph) when the map, moved with it,
+    # renders the loop's keyframes more than this many dB (mean PSNR) worse than before: a loop edge that
+    # tears the map apart contradicts what tracking and mapping measured. Negative: no check. Right corrections
+    # of the data_synth lap dropped it by 1.3-1.9 dB before the map was refined; 3 dB undoes only tears
+    # (docs/tracking.md, "Loop closure").
+    max_correction_psnr_drop_db: float = 3.0
+
+    @classmethod
+    def from_config(cls, section: LoopConfig, *, depth_noise_power: float = 0.0) -> "LoopOptions":
+        """The options of a ``loop`` config section and the dataset's ``depth_noise_power``."""
+        return section_options(cls, section, depth_noise_power=depth_noise_power)
+
+    def pgo_options(self, base: PGOOptions = PGOOptions()) -> PGOOptions:
+        """The SA-PGO switches and sizes; the remaining solver settings come from ``base``."""
+        return replace(base, spectral_edge_weighting=self.spectral_edge_weighting,
+                       low_frequency_correction=self.low_frequency_correction,
+                       num_eigenvectors=self.num_eigenvectors, full_iterations=self.full_iterations)
+
+    def candidate_options(self, base: CandidateOptions = CandidateOptions()) -> CandidateOptions:
+        """Loop-candidate rules: the minimum keyframe gap."""
+        return replace(base, min_gap=self.min_keyframe_gap)
+
+    def registration_options(self, base: RegistrationOptions = RegistrationOptions()) -> RegistrationOptions:
+        """Verification method, acceptance thresholds, voxel sizes (finest and 2x), pixel stride and the direct
+        alignment's depth units (z^p)."""
+        return replace(base, method=self.registration, fitness_threshold=self.fitness_threshold,
+                       rmse_threshold=self.icp_rmse_threshold, pixel_stride=self.icp_pixel_stride,
+                       direct_depth_noise_power=self.depth_noise_power,
+                       voxel_sizes=(2 * self.icp_voxel_m, self.icp_voxel_m))
+
+
 # ----------------------------------------------------------------------------- the stage
 
 
 class LoopCloser:
-    """Loop detection, verification and SA-PGO on keyframes (reads only the ``loop:`` config section)."""
+    """Loop detection, verification and SA-PGO on keyframes (reads only its :class:`LoopOptions`)."""
 
-    def __init__(self, config: LoopConfig, *, verification_hook: VerificationHook | None = None,
+    def __init__(self, config: LoopOptions, *, verification_hook: VerificationHook | None = None,
                  descriptor_options: DescriptorOptions = DescriptorOptions(), observer: Observer | None = None):
         self.config = config
         self.observer = observer or Observer()  # times the optimiser as stage "pgo"
         self.descriptor_options = descriptor_options
-        self.candidate_options = candidate_options(config)
-        self.registration_options = registration_options(config)
-        self.pgo_options = pgo_options(config)
+        self.candidate_options = config.candidate_options()
+        self.registration_options = config.registration_options()
+        self.pgo_options = config.pgo_options()
         self.verification_hook = verification_hook
 
     def process_keyframe(
@@ -611,13 +712,13 @@ def close_loops(closer: LoopCloser, mapper: Mapper, state: "SLAMState", frames: 
 def correct_map(closer: LoopCloser, mapper: Mapper, state: "SLAMState", frames: "FrameCache",
                 step: LoopStep) -> dict[str, Any]:
     """Apply an accepted pose-graph correction (:meth:`~mipslam.state.SLAMState.correct_keyframe_poses`), then
-    ``loop.refine_iterations`` mapping steps over the loop's keyframes (the query and its loop partners) at
+    ``LoopOptions.refine_iterations`` mapping steps over the loop's keyframes (the query and its loop partners) at
     their corrected, fixed poses (:func:`~mipslam.mapping.refine_after_correction`). Returns the loops.json
     entry: Gaussians moved, refinement steps and seconds.
 
     The map's PSNR (dB) at those keyframes against their images is measured before the correction at the old
     poses and after the Gaussians moved with their anchor keyframes: a correction whose moved map renders them
-    worse by more than ``loop.max_correction_psnr_drop_db`` (:meth:`LoopCloser.keeps_correction`) is undone
+    worse by more than ``LoopOptions.max_correction_psnr_drop_db`` (:meth:`LoopCloser.keeps_correction`) is undone
     (poses and Gaussians back, its new loop edges removed from the graph). With ``observer.diagnostics`` the
     entry also has the PSNR at the new poses with the map not yet moved (what correcting only the poses
     would give) and after the refinement (a render per keyframe each).

@@ -22,6 +22,7 @@ from pathlib import Path
 
 from mipslam.bench.peers.options import PeerOptions
 from mipslam.errors import MipslamError
+from mipslam.evaluation.run_eval import TRAJECTORY_ASSOCIATION_S
 
 PEER_FILE = "peer.json"
 
@@ -65,7 +66,7 @@ def run_peer_job(job: dict) -> dict:
         "dataset": {"stride": config.dataset.stride, "first_frame": config.dataset.first_frame,
                     "max_frames": config.dataset.max_frames},
         "evaluation": {"alignment": config.eval.alignment,
-                       "max_diff_s": 0.5 if by_index else config.eval.association_tolerance_s},
+                       "max_diff_s": 0.5 if by_index else TRAJECTORY_ASSOCIATION_S},
         "options": options.to_dict()[peer.replace("-", "_")],
         **result.summary(),
     }

@@ -52,7 +52,7 @@ from mipslam.bench.scenarios.checkout import CONFIGS, REPO, parameters
 TINY_SETTINGS = (
     "mapping.first_frame_iterations=30", "mapping.iterations=8", "mapping.densify_pixel_stride=2",
     "tracking.iterations=15", "keyframes.window_size=3", "keyframes.random_past=1", "run.threads=1",
-    "run.checkpoint_every=2", "run.keep_checkpoints=2",
+    "run.checkpoint_every=2",
 )
 STRATEGIES = ("time", "tracking", "mapping", "checkpoint")
 CTRL_C_STRATEGIES = ("ctrl-c:mapping", "ctrl-c:tracking", "ctrl-c:checkpoint")
@@ -361,7 +361,7 @@ def run_trial(setup: Setup, workdir: Path, trial: int, strategy: str, rng: rando
                            float("inf"), float("inf"), 0, False, f"resume failed: {last}")
     diff = compare_runs(setup.reference, run_dir)
     at_end, _ = _checkpoint_frames(run_dir)
-    bounded = at_end <= 3  # keep_checkpoints=2, plus one when killed between a rename and the pruning
+    bounded = at_end <= 3  # KEEP_CHECKPOINTS=2, plus one when killed between a rename and the pruning
     ok = bool(diff["same"]) and bounded and not note.startswith("Ctrl-C gave")
     note = "; ".join(filter(None, [note, str(diff["why"]), "" if bounded else f"{at_end} checkpoint files"]))
     return TrialResult(trial, strategy, kill_after, phase, frame, finished, checkpoints, resumed_from, code,

@@ -29,7 +29,7 @@ Checks (printed with PASS/FAIL; the exit code is 1 if one fails):
   first lap is not compared with the last. With 2 laps the quarters lie in different parts of the
   room, whose costs differ; the check is fair from about 4 laps (1000 frames) on;
 * Gaussian count plateaus: the last quarter of the run adds at most 5 % to the count;
-* bounded checkpoint files: never more than ``run.keep_checkpoints + 1`` (+1: the moment between
+* bounded checkpoint files: never more than ``KEEP_CHECKPOINTS + 1`` (+1: the moment between
   writing a new checkpoint and deleting the oldest).
 
 Run: ``mipslam bench --scenario long_run --out bench_out/long500 --set long_run.frames=500``
@@ -66,6 +66,7 @@ from mipslam.bench.scenarios.checkout import CONFIGS, REPO, parameters  # noqa: 
 from mipslam.checkpoint import list_checkpoints  # noqa: E402
 from mipslam.config import load_config  # noqa: E402
 from mipslam.evaluation.trajectory import evaluate_trajectory  # noqa: E402
+from mipslam.run_control import KEEP_CHECKPOINTS  # noqa: E402
 from mipslam.io.tum import read_tum_trajectory  # noqa: E402
 from mipslam.observer import Observer  # noqa: E402
 from mipslam.pipeline import run_slam  # noqa: E402
@@ -352,7 +353,7 @@ def run(options: Options, out_dir: Path) -> ScenarioResult:
         probe.finish(summary.gaussians, summary.keyframes)
         metrics = evaluate_trajectory(read_tum_trajectory(run_dir / "traj_gt.txt"),
                                       read_tum_trajectory(run_dir / "traj_est.txt"), association="index").to_dict()
-        results = checks(probe, covered_frame(options.frames, laps), config.run.keep_checkpoints)
+        results = checks(probe, covered_frame(options.frames, laps), KEEP_CHECKPOINTS)
         rows = curve_rows(probe, options.rows)
     finally:
         if not options.keep:

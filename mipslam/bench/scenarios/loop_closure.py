@@ -59,24 +59,25 @@ from mipslam.rendering import render_view  # noqa: E402
 
 log = logging.getLogger(__name__)
 
+# Each variant: config overrides, and the loop stage's constants it replaces (PipelineHooks.constants).
 VARIANTS = {
-    "loop off": ["loop.enabled=false"],
-    "full LM": ["loop.spectral_edge_weighting=false", "loop.low_frequency_correction=false"],
-    "SA-PGO: spectral": ["loop.spectral_edge_weighting=true", "loop.low_frequency_correction=false"],
-    "SA-PGO: low-freq": ["loop.spectral_edge_weighting=false", "loop.low_frequency_correction=true"],
-    "SA-PGO: both": ["loop.spectral_edge_weighting=true", "loop.low_frequency_correction=true"],
+    "loop off": (["loop.enabled=false"], {}),
+    "full LM": ([], {"loop.spectral_edge_weighting": False, "loop.low_frequency_correction": False}),
+    "SA-PGO: spectral": ([], {"loop.spectral_edge_weighting": True, "loop.low_frequency_correction": False}),
+    "SA-PGO: low-freq": ([], {"loop.spectral_edge_weighting": False, "loop.low_frequency_correction": True}),
+    "SA-PGO: both": ([], {"loop.spectral_edge_weighting": True, "loop.low_frequency_correction": True}),
 }
 
 SETTINGS = {
     "full": dict(frames=241, width=64, height=48, bias=[0.0005, 0.0, 0.0, 0.0, 0.0008, 0.0], after_lap_frame=216,
                  overrides=["mapping.first_frame_iterations=60", "mapping.iterations=12", "tracking.iterations=1",
-                            "keyframes.window_size=4", "keyframes.random_past=1", "mapping.densify_pixel_stride=2",
-                            "loop.icp_pixel_stride=1", "loop.icp_voxel_m=0.04"]),
+                            "keyframes.window_size=4", "keyframes.random_past=1", "mapping.densify_pixel_stride=2"],
+                 constants={"loop.icp_pixel_stride": 1, "loop.icp_voxel_m": 0.04}),
     "quick": dict(frames=48, width=40, height=30, bias=[0.004, 0.0, 0.0, 0.0, 0.01, 0.0], after_lap_frame=22,
                   overrides=["mapping.first_frame_iterations=30", "mapping.iterations=8", "tracking.iterations=1",
-                             "keyframes.window_size=3", "keyframes.random_past=1", "mapping.densify_pixel_stride=2",
-                             "loop.min_keyframe_gap=6", "loop.icp_pixel_stride=1", "loop.icp_voxel_m=0.05",
-                             "loop.odometry_drift_ratio=0.3"]),
+                             "keyframes.window_size=3", "keyframes.random_past=1", "mapping.densify_pixel_stride=2"],
+                  constants={"loop.min_keyframe_gap": 6, "loop.icp_pixel_stride": 1, "loop.icp_voxel_m": 0.05,
+                             "loop.odometry_drift_ratio": 0.3}),
 }
 
 
@@ -115,13 +116,14 @@ def map_psnr(run_dir: Path, sequence, config, indices: list[int], poses: torch.T
 def run_variant(name: str, sequence_dir: Path, work: Path, setting: dict, threads: int) -> dict:
     # run.diagnostics: loops.json then holds the map's PSNR around each correction (renders only; the run is the same)
     overrides = [f"dataset.path={sequence_dir}", f"run.threads={threads}", "run.checkpoint_every=0",
-                 "run.diagnostics=true", *setting["overrides"], *VARIANTS[name]]
+                 "run.diagnostics=true", *setting["overrides"], *VARIANTS[name][0]]
     config = load_config(CONFIGS / "synthetic.yaml", overrides=overrides)
     sequence = make_sequence(config.dataset)
     odometer = import_test_helper("fault_injection").BiasedOdometer(sequence.gt_T_wc, torch.tensor(setting["bias"], dtype=torch.float64))
     run_dir = work / name.replace(" ", "_").replace(":", "")
     start = time.perf_counter()
-    summary = run_slam(config, run_dir, evaluate=False, hooks=PipelineHooks(after_tracking=odometer))
+    constants = {**setting["constants"], **VARIANTS[name][1]}
+    summary = run_slam(config, run_dir, evaluate=False, hooks=PipelineHooks(after_tracking=odometer, constants=constants))
     seconds = time.perf_counter() - start
     metrics = evaluate_trajectory(read_tum_trajectory(run_dir / "traj_gt.txt"),
                                   read_tum_trajectory(run_dir / "traj_est.txt"), alignment="se3")

@@ -2,7 +2,7 @@
 "`balanced` on fr1_rpy").
 
 Frame pairs (i, i + gap) of a sequence with ground truth are registered by the loop stage's verification
-(``loop.registration`` and its options, from the config) from their ground-truth relative pose, perturbed by a
+(the loop stage's registration options, from the config) from their ground-truth relative pose, perturbed by a
 random motion of ``perturb_m`` / ``perturb_deg`` standard deviation per axis. For the pairs it accepts:
 the translation (cm) and rotation (deg) of the error ``inv(T_gt) T_ij`` (median and 90th percentile),
 against the standard deviations the edge's information claims (``sqrt`` of the diagonal of its inverse,
@@ -36,7 +36,7 @@ from mipslam.datasets import make_sequence
 from mipslam.errors import MipslamError
 from mipslam.evaluation.loop_edges import fitness_bins
 from mipslam.geometry.se3 import rotation_angle, se3_exp, se3_inverse
-from mipslam.loop.from_config import registration_options
+from mipslam.loop.closer import LoopOptions
 from mipslam.loop.registration import register_rgbd_pair
 
 log = logging.getLogger(__name__)
@@ -121,7 +121,8 @@ def run(options: Options, out_dir: Path) -> ScenarioResult:
     gt_T_wc, gt_valid = sequence.gt_T_wc, sequence.gt_valid
     if options.gt_time_shift_s != 0:
         gt_T_wc, gt_valid = _shifted_ground_truth(config, sequence.timestamps, options.gt_time_shift_s)
-    registration = registration_options(config.loop)
+    registration = LoopOptions.from_config(config.loop, depth_noise_power=config.dataset.depth_noise_power)\
+        .registration_options()
     generator = torch.Generator().manual_seed(options.seed)
     sigma = torch.tensor([options.perturb_m] * 3 + [math.radians(options.perturb_deg)] * 3, dtype=torch.float64)
     pairs = [(i, i + gap) for i in range(0, len(sequence), options.first_every) for gap in options.gaps
@@ -149,7 +150,7 @@ def run(options: Options, out_dir: Path) -> ScenarioResult:
     results["by_fitness"] = _by_fitness(options.fitness_bins, fitness, errors_t, errors_r, claimed_t)
     log.info("loop edges: %s", results)
     report = "\n".join([
-        f"**{config.dataset.path}**, `loop.registration={config.loop.registration}`, gaps {list(options.gaps)} frames, "
+        f"**{config.dataset.path}**, registration `{registration.method}`, gaps {list(options.gaps)} frames, "
         f"start perturbed by {options.perturb_m * 100:g} cm / {options.perturb_deg:g} deg per axis", "",
         "| pairs (accepted) | error t median / p90 [cm] | claimed t [cm] | error r median / p90 [deg] | "
         "claimed r [deg] | error / claimed (t, r) |",

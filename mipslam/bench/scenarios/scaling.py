@@ -19,7 +19,7 @@ the map is in view, as in a SLAM frame. Gaussian counts 1k..200k at 320x240; pix
 PGO: :func:`mipslam.loop.solver.optimize_pose_graph` on ``make_synthetic_pose_graph`` graphs
 (2 laps of a circle, a loop edge every 5 keyframes, odometry noise 1 cm / 0.3 deg), plain full LM
 and SA-PGO with both switches (as the ``pgo`` scenario), each over the whole graph, and SA-PGO
-over the newest ``loop.pgo_window_keyframes`` nodes as the SLAM loop runs it
+over the newest ``LoopOptions.pgo_window_keyframes`` nodes as the SLAM loop runs it
 (:func:`mipslam.loop.solver.optimize_pose_graph_window`); one thread (the solver's default).
 
 Every time is the median of ``scaling.repeats`` runs (>= 5 by default) after one warm-up call; the sizes
@@ -220,12 +220,12 @@ def make_case(torch, count, width, height, seed):
 
 
 def pgo_sweep(args) -> dict:
-    from mipslam.config import LoopConfig
+    from mipslam.loop.closer import LoopOptions
     from mipslam.loop.solver import PGOOptions, optimize_pose_graph_window
     make_synthetic_pose_graph = import_test_helper("synthetic_pose_graphs").make_synthetic_pose_graph
 
     sa_pgo = PGOOptions(spectral_edge_weighting=True, low_frequency_correction=True)
-    window = LoopConfig().pgo_window_keyframes
+    window = LoopOptions.pgo_window_keyframes
     # (options, window of free keyframes; 0 = the whole graph)
     methods = {"full LM": (PGOOptions(), 0), "SA-PGO (both)": (sa_pgo, 0),
                f"SA-PGO, newest {window} free (the SLAM default)": (sa_pgo, window)}

@@ -49,7 +49,7 @@ from mipslam.config import Config, load_config  # noqa: E402
 from mipslam.datasets import make_sequence  # noqa: E402
 from mipslam.gaussians import ActivatedGaussians  # noqa: E402
 from mipslam.geometry import se3_exp, se3_inverse, so3_log  # noqa: E402
-from mipslam.mapping import MappingView  # noqa: E402
+from mipslam.mapping import MappingOptions, MappingView  # noqa: E402
 from mipslam.pipeline import Stages, resolve_device  # noqa: E402
 from mipslam.rendering import render_view  # noqa: E402
 from mipslam.state import SLAMState  # noqa: E402
@@ -127,7 +127,7 @@ def run(options: Options, out_dir: Path) -> ScenarioResult:
     config = load_config(CONFIGS / "synthetic.yaml", preset=options.preset, overrides=overrides)
     sequence = make_sequence(config.dataset)
     device = resolve_device(config.run.device)
-    state = SLAMState.initial(config.mapping, config.run.seed, device)
+    state = SLAMState.initial(MappingOptions.from_config(config.mapping), config.run.seed, device)
     stages = Stages.build(config, sequence, device)
     T_wc_true = sequence.gt_T_wc
 
