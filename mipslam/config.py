@@ -373,6 +373,8 @@ RETIRED_KEYS = {
                                            "by tracking and loop verification alike); set the new key",
     "run.mmap_threshold_kib": "removed: it was off in every shipped config (docs/robustness.md, \"Long runs\"); "
                               "delete the line",
+    "tracking.gradient_mask_percentile": "removed: it was off (0) in every shipped config; delete the line",
+    "tracking.lr_final_ratio": "removed: it was off (1, a constant rate) in every shipped config; delete the line",
 }
 
 # Keys that became a stage's internal constants: section -> (the module that defines them, the option object),
@@ -387,7 +389,7 @@ INTERNAL_KEYS = {
         "align_depth_time", "alpha_color", "coarse_render_mode", "coarse_share", "coarse_to_fine",
         "convergence_threshold", "coverage_opacity", "dense_start", "depth_alpha_floor", "depth_normalise",
         "depth_outlier_ratio", "direct_alpha_color", "direct_convergence", "direct_levels", "direct_renders",
-        "failure_loss_ratio", "gradient_mask_percentile", "lr_final_ratio", "lr_rotation", "lr_translation",
+        "failure_loss_ratio", "lr_rotation", "lr_translation",
         "max_depth", "min_valid_fraction", "min_width", "optimizer", "relocalise_max_deg",
         "relocalise_max_m", "render_mode", "rprop_max_step_ratio", "running_loss_momentum", "start_margin")),
     "frontend": ("mipslam/frontend.py", "FeatureOptions", (

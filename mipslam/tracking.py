@@ -37,7 +37,7 @@ from mipslam.geometry import nearest_rigid, resize_area
 from mipslam.frontend import Frontend, FrontendStart
 from mipslam.geometry.direct import DirectReference, DirectTarget, direct_reference, direct_target, pyramid_scales
 from mipslam.geometry.se3 import se3_exp, se3_exp_times, se3_exp_times_vjp, se3_inverse, se3_log
-from mipslam.losses.photometric import (RGBDLoss, RGBDMasks, apply_affine_exposure, image_gradient_mask, rgbd_l1_loss,
+from mipslam.losses.photometric import (RGBDLoss, RGBDMasks, apply_affine_exposure, rgbd_l1_loss,
                                         rgbd_masks)
 from mipslam.loop.registration import RegistrationOptions, register_rgbd_odometry
 from mipslam.render import RenderOutput, direct_aligner, rgbd_loss_and_gradients
@@ -173,12 +173,11 @@ class TrackingOptions:
     # rprop: lr_* is each coordinate's first step (m, rad); it grows 1.2x while the coordinate's gradient keeps its
     # sign and halves when it flips, never beyond lr * rprop_max_step_ratio, so a good start is refined in small
     # steps and a level stops once the steps fall below convergence_threshold. adam (no shipped config): every
-    # step moves a coordinate by about lr until the end, decayed to lr * lr_final_ratio over a level.
+    # step moves a coordinate by about lr until the end.
     optimizer: Literal["adam", "rprop"] = "rprop"
     lr_translation: float = 5e-4
     lr_rotation: float = 1e-3
     rprop_max_step_ratio: float = 50.0
-    lr_final_ratio: float = 1.0
     # Stop a level when the pose update (se3 norm; rprop: the norm of its next steps) is below this.
     convergence_threshold: float = 1e-4
     alpha_color: float = 0.5  # weight of the photometric term against depth
@@ -190,7 +189,6 @@ class TrackingOptions:
     # The feature front-end's start replaces the motion model's only when the map renders it with a loss lower
     # by this fraction (Tracker.best_start).
     start_margin: float = 0.1
-    gradient_mask_percentile: float = 0.0  # keep colour pixels above this image-gradient percentile (0-100)
     min_valid_fraction: float = 0.05
     failure_loss_ratio: float = 5.0  # loss above ratio * running level = failure
     # Largest jump relocalisation accepts from the RGB-D alignment to the previous frame (a bump, dropped frames).
@@ -289,8 +287,7 @@ class Tracker:
                 iterations = per_coarse
             if iterations <= 0:
                 continue
-            target_masks = rgbd_masks(color, depth, max_depth=cfg.max_depth,
-                                      extra_color_mask=image_gradient_mask(color, cfg.gradient_mask_percentile))
+            target_masks = rgbd_masks(color, depth, max_depth=cfg.max_depth)
             mode = cfg.render_mode if scale == finest or cfg.coarse_render_mode is None else cfg.coarse_render_mode
             levels.append(_Level(intrinsics, color, depth, target_masks, iterations, mode))
         return self._split_finest_by_mode(levels)
@@ -499,16 +496,8 @@ class Tracker:
         # The finest level (tracking.resolution_scale) in render_mode is last; its steps alone judge the best pose
         # (tracking.coarse_mode_iterations may have moved its first steps into a level of their own before it).
         full = levels[-1]
-        base_lrs = [group["lr"] for group in optimizer.param_groups]
-        # Adam's rate decays geometrically within each level: lr_i = lr * ratio^(i / (n - 1)). Rprop reads lr
-        # only to size its first steps and adapts them itself, so its rate is left alone.
-        decays_lr = cfg.optimizer == "adam"
         for level in levels:
-            decay = cfg.lr_final_ratio ** (1.0 / max(1, level.iterations - 1))
             for i in range(level.iterations):
-                if decays_lr:
-                    for group, base in zip(optimizer.param_groups, base_lrs):
-                        group["lr"] = base * decay ** i
                 xi = torch.cat([rho.detach(), phi.detach()])  # this step's twist, before the optimiser moves it
                 step_render = self._step_render(gaussians, rho, phi, T_cw_init, level, exposure)
                 loss, alpha = step_render.loss, step_render.alpha
