@@ -48,7 +48,7 @@ from typing import TYPE_CHECKING, Any, Callable, NamedTuple
 import torch
 
 from mipslam.config import LoopConfig
-from mipslam.errors import CheckpointError, MipslamError
+from mipslam.errors import MipslamError
 from mipslam.evaluation.image_metrics import psnr
 from mipslam.geometry import rotation_angle, se3_inverse
 from mipslam.losses.photometric import apply_affine_exposure
@@ -60,6 +60,7 @@ from mipslam.loop.solver import PGOResult, optimize_pose_graph_window
 from mipslam.mapping import Mapper, refine_after_correction
 from mipslam.observer import Observer
 from mipslam.rendering import render_view
+from mipslam.state import LoopState
 from mipslam.types import Intrinsics
 
 if TYPE_CHECKING:
@@ -81,55 +82,7 @@ def _finite_or_none(value: float) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
-# ----------------------------------------------------------------------------- state
-
-
-@dataclass(frozen=True)
-class LoopState:
-    """The loop-closure part of the SLAM state (it goes into the checkpoint as plain tensors).
-
-    graph: pose graph whose node k is keyframe k (poses are the estimates of the last update)
-    descriptors: global descriptor of every keyframe, float32 CPU   # [K, D]
-    recent_corrections: the corrections implied by the recent keyframes' verified loop edges, the evidence a
-        later edge is confirmed by (``loop.confirm_keyframes``): rows (query keyframe, the world-frame correction
-        ``C = T_i Z_ik T_k^-1`` of :func:`implied_corrections`, row-major 4x4), float64 CPU   # [P, 17]
-    """
-
-    graph: PoseGraph
-    descriptors: torch.Tensor
-    recent_corrections: torch.Tensor = field(default_factory=lambda: torch.zeros(0, 17, dtype=torch.float64))
-
-    @staticmethod
-    def empty(descriptor_options: DescriptorOptions = DescriptorOptions()) -> "LoopState":
-        return LoopState(PoseGraph.empty(), torch.zeros(0, descriptor_options.dimension, dtype=torch.float32))
-
-    @property
-    def num_keyframes(self) -> int:
-        return int(self.descriptors.shape[0])
-
-    def state_dict(self) -> dict[str, torch.Tensor]:
-        """Plain tensors only (``torch.load(..., weights_only=True)`` reads them)."""
-        tensors = {f"graph.{k}": v for k, v in self.graph.state_dict().items()}
-        tensors["descriptors"] = self.descriptors.detach().cpu().clone()
-        tensors["recent_corrections"] = self.recent_corrections.detach().cpu().clone()
-        return tensors
-
-    @staticmethod
-    def from_state_dict(tensors: dict[str, torch.Tensor]) -> "LoopState":
-        """Inverse of :meth:`state_dict`; raises CheckpointError on a missing or inconsistent entry."""
-        if "descriptors" not in tensors:
-            raise CheckpointError("loop-closure state in checkpoint lacks 'descriptors'; start a new run")
-        graph = PoseGraph.from_state_dict({k[len("graph."):]: v for k, v in tensors.items() if k.startswith("graph.")})
-        descriptors = tensors["descriptors"].to(torch.float32).cpu()
-        if descriptors.dim() != 2 or descriptors.shape[0] != graph.num_nodes:
-            raise CheckpointError(f"loop-closure state in checkpoint is inconsistent: {graph.num_nodes} pose-graph nodes "
-                                  f"but descriptors of shape {tuple(descriptors.shape)}; start a new run")
-        # a checkpoint written before the confirmation existed has none: the next edges wait for new evidence
-        recent = tensors.get("recent_corrections", torch.zeros(0, 17, dtype=torch.float64)).to(torch.float64).cpu()
-        if recent.dim() != 2 or recent.shape[1] != 17:
-            raise CheckpointError("loop-closure state in checkpoint has recent corrections of shape "
-                                  f"{tuple(recent.shape)}, expected [P, 17]; start a new run")
-        return LoopState(graph, descriptors, recent)
+# ----------------------------------------------------------------------------- the stage's input
 
 
 @dataclass(frozen=True)
