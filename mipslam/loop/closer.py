@@ -47,17 +47,16 @@ from typing import TYPE_CHECKING, Any, Callable, NamedTuple
 
 import torch
 
-from mipslam.config import LoopConfig
+from mipslam.config import LoopConfig, RenderConfig
 from mipslam.errors import MipslamError
-from mipslam.evaluation.image_metrics import psnr
 from mipslam.geometry import rotation_angle, se3_inverse
+from mipslam.losses.metrics import psnr
 from mipslam.losses.photometric import apply_affine_exposure
 from mipslam.loop.descriptors import DescriptorOptions, global_descriptor, select_loop_candidates
 from mipslam.loop.from_config import candidate_options, pgo_options, registration_options
 from mipslam.loop.pose_graph import PoseGraph, edge_residuals, mahalanobis_sq
 from mipslam.loop.registration import RegistrationResult, register_rgbd_pair
 from mipslam.loop.solver import PGOResult, optimize_pose_graph_window
-from mipslam.mapping import Mapper, refine_after_correction
 from mipslam.observer import Observer
 from mipslam.rendering import render_view
 from mipslam.state import LoopState
@@ -76,6 +75,11 @@ MIN_QUALITY = 0.1
 VerificationHook = Callable[[int, int, RegistrationResult], RegistrationResult]
 """(candidate keyframe i, query keyframe k, verification result) -> result: fault injection for
 tests and benchmarks (e.g. a deliberately wrong loop); a normal run has none."""
+
+MapRefit = Callable[[list[int], int], int]
+"""(keyframe ids, steps) -> steps taken: the mapping stage's refit of the map at the keyframes' corrected poses
+after a correction moved them (:func:`mipslam.mapping.refine_after_correction`), which the pipeline passes in:
+the stages talk through the pipeline, not through each other's modules (docs/design.md "Import layers")."""
 
 
 def _finite_or_none(value: float) -> float | None:
@@ -539,11 +543,12 @@ def keyframe_view(state: "SLAMState", frames: "FrameCache", keyframe_id: int) ->
     return KeyframeView(keyframe_id, record.index, frame.color, frame.depth, frame.intrinsics)
 
 
-def close_loops(closer: LoopCloser, mapper: Mapper, state: "SLAMState", frames: "FrameCache") -> LoopStep:
+def close_loops(closer: LoopCloser, state: "SLAMState", frames: "FrameCache", render_config: RenderConfig,
+                refit: MapRefit) -> LoopStep:
     """The loop-closure step on the newest keyframe of ``state``: :meth:`LoopCloser.process_keyframe` with the
     odometry evidence since the previous keyframe; the step's reports go into ``state.loop_log``, and an
-    accepted correction moves the keyframes, the other frames and the map (:func:`correct_map`, which refits
-    the map with ``mapper``)."""
+    accepted correction moves the keyframes, the other frames and the map (:func:`correct_map`, which renders
+    the map with ``render_config``, the mapping stage's, and refits it with ``refit``)."""
     keyframe_id = state.last_keyframe_id()
     record = state.keyframe_record(keyframe_id)
     since = state.keyframe_frames[keyframe_id - 1] if keyframe_id > 0 else len(state.frames) - 1
@@ -556,17 +561,17 @@ def close_loops(closer: LoopCloser, mapper: Mapper, state: "SLAMState", frames: 
     if step.optimisation is not None:
         entry = step.optimisation.to_dict()
         if step.corrected_T_wc is not None:
-            entry.update(correct_map(closer, mapper, state, frames, step))
+            entry.update(correct_map(closer, state, frames, step, render_config, refit))
         state.loop_log["optimisations"].append(entry)
     return step
 
 
-def correct_map(closer: LoopCloser, mapper: Mapper, state: "SLAMState", frames: "FrameCache",
-                step: LoopStep) -> dict[str, Any]:
+def correct_map(closer: LoopCloser, state: "SLAMState", frames: "FrameCache", step: LoopStep,
+                render_config: RenderConfig, refit: MapRefit) -> dict[str, Any]:
     """Apply an accepted pose-graph correction (:meth:`~mipslam.state.SLAMState.correct_keyframe_poses`), then
     ``loop.refine_iterations`` mapping steps over the loop's keyframes (the query and its loop partners) at
-    their corrected, fixed poses (:func:`~mipslam.mapping.refine_after_correction`). Returns the loops.json
-    entry: Gaussians moved, refinement steps and seconds.
+    their corrected, fixed poses (``refit``: :func:`~mipslam.mapping.refine_after_correction`, from the
+    pipeline). Returns the loops.json entry: Gaussians moved, refinement steps and seconds.
 
     The map's PSNR (dB) at those keyframes against their images is measured before the correction at the old
     poses and after the Gaussians moved with their anchor keyframes: a correction whose moved map renders them
@@ -580,7 +585,7 @@ def correct_map(closer: LoopCloser, mapper: Mapper, state: "SLAMState", frames: 
     start = time.perf_counter()
 
     def measure(poses) -> list[float]:
-        return [_keyframe_psnr(mapper, state, frames, k, poses(k)) for k in check]
+        return [_keyframe_psnr(render_config, state, frames, k, poses(k)) for k in check]
 
     before = measure(lambda k: state.keyframe_record(k).T_wc)
     poses_only = measure(lambda k: step.corrected_T_wc[k]) if diagnostics else None
@@ -598,7 +603,7 @@ def correct_map(closer: LoopCloser, mapper: Mapper, state: "SLAMState", frames: 
         entry.update({"gaussians_moved": 0, "refine_iterations": 0, "applied": False, "undone": True,
                       "map_correction_s": time.perf_counter() - start})
         return entry
-    refine_iterations = refine_after_correction(mapper, state, frames, check, closer.config.refine_iterations)
+    refine_iterations = refit(check, closer.config.refine_iterations)
     entry["refine_iterations"] = refine_iterations
     if diagnostics:
         after = measure(lambda k: state.keyframe_record(k).T_wc)
@@ -616,7 +621,7 @@ def correct_map(closer: LoopCloser, mapper: Mapper, state: "SLAMState", frames: 
 
 
 @torch.no_grad()
-def _keyframe_psnr(mapper: Mapper, state: "SLAMState", frames: "FrameCache", keyframe_id: int,
+def _keyframe_psnr(render_config: RenderConfig, state: "SLAMState", frames: "FrameCache", keyframe_id: int,
                    T_wc: torch.Tensor) -> float:
     """PSNR (dB) of the map rendered at ``T_wc`` [4, 4] (camera-to-world) against keyframe ``keyframe_id``'s
     image, in the render config's footprint mode, with the keyframe's exposure."""
@@ -624,6 +629,6 @@ def _keyframe_psnr(mapper: Mapper, state: "SLAMState", frames: "FrameCache", key
     frame = frames[record.index]
     gmap = state.gaussian_map
     out = render_view(gmap.activated(), se3_inverse(T_wc.to(torch.float64)).to(device=gmap.device, dtype=gmap.dtype),
-                      frame.intrinsics, mapper.render_config)
+                      frame.intrinsics, render_config)
     exposure = record.exposure.to(out.color)
     return float(psnr(apply_affine_exposure(out.color, exposure[0], exposure[1]).clamp(0, 1), frame.color))
