@@ -220,7 +220,9 @@ class RefineConfig:
 
     # passes over every keyframe after the last frame, in a random order (a pass at least 10 steps); 0 = none
     passes: int = 0
-    lr_poses: float = 1.0e-4  # Adam rate of the keyframe poses in the refinement (m, rad); 0 keeps them fixed
+    # Adam rate of the keyframe poses in the refinement (m, rad); 0 keeps them fixed. It fits the poses to the
+    # images as recorded, and a rolling shutter's image fits the pose of its middle row, not its time stamp's
+    lr_poses: float = 0.0
 
     def __post_init__(self):
         _check(self.passes >= 0, "refine.passes", "must be >= 0 (0 = no final refinement)")

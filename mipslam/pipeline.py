@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -26,7 +27,7 @@ from mipslam.frontend import Frontend
 from mipslam.io.run_folder import write_json_atomic
 from mipslam.keyframes import KeyframeOptions, insert_keyframe, keyframe_decision
 from mipslam.loop.closer import LoopCloser, LoopOptions, VerificationHook, close_loops
-from mipslam.mapping import Mapper, MappingOptions, map_keyframe, refine_map
+from mipslam.mapping import Mapper, MappingOptions, map_keyframe, refine_after_correction, refine_map
 from mipslam.refinement import refine_options
 from mipslam.observer import Observer
 from mipslam.run_control import FrameLoop, PreparedRun, RunSummary, prepare_run, resolve_device, write_checkpoint
@@ -131,7 +132,8 @@ def process_frame(stages: Stages, state: SLAMState, index: int, timestamp: float
             map_keyframe(stages.mapper, state, stages.frames, record, window)
         if stages.loop is not None:
             with observe("loop"):
-                close_loops(stages.loop, stages.mapper, state, stages.frames)
+                close_loops(stages.loop, state, stages.frames, stages.mapper.render_config,
+                            partial(refine_after_correction, stages.mapper, state, stages.frames))
     return state.end_frame(tracked, stages.tracker.config.running_loss_momentum)
 
 

@@ -3,7 +3,8 @@
 Per processed frame a frozen :class:`FrameRecord`; the keyframes (id -> frame position), the
 window, the map with its optimizer state, the run's random generator, the running tracking loss,
 the Gaussian count over time, and the loop-closure state (pose graph and keyframe descriptors,
-:class:`~mipslam.loop.closer.LoopState`) with its log of candidates and optimisations.
+:class:`LoopState`, a record of this data layer that the loop-closure stage reads and returns) with its log of
+candidates and optimisations.
 :meth:`SLAMState.to_checkpoint` gives plain tensors plus JSON metadata (no pickled objects);
 :meth:`SLAMState.from_checkpoint` is its inverse. Stage timings are outputs, not state
 (:class:`~mipslam.observer.Observer`); the checkpoint carries them beside the state.
@@ -12,18 +13,27 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import torch
 
 from mipslam.checkpoint import capture_rng_state, restore_rng_state, select_prefix, with_prefix
+from mipslam.errors import CheckpointError
 from mipslam.gaussians import GaussianMap, GaussianOptimizer
 from mipslam.geometry import interpolate_pose, se3_inverse
-from mipslam.loop.closer import LoopState
+from mipslam.loop.descriptors import DescriptorOptions
+from mipslam.loop.pose_graph import PoseGraph
 
-if TYPE_CHECKING:
-    from mipslam.mapping import MappingOptions
-    from mipslam.tracking import TrackingResult
+
+class LearningRates(Protocol):
+    """The map's Adam rates per parameter group (mapping's ``MappingOptions`` has them)."""
+
+    lr_means: float
+    lr_quats: float
+    lr_scales: float
+    lr_opacities: float
+    lr_colors: float
+
 
 STATE_VERSION = 2  # 2: loop-closure state (pose graph, descriptors, loop log)
 
@@ -55,6 +65,66 @@ class FrameRecord:
         return self.status in ("initial", "ok")
 
 
+@dataclass(frozen=True)
+class LoopState:
+    """The loop-closure part of the SLAM state (it goes into the checkpoint as plain tensors).
+
+    graph: pose graph whose node k is keyframe k (poses are the estimates of the last update)
+    descriptors: global descriptor of every keyframe, float32 CPU   # [K, D]
+    recent_corrections: the corrections implied by the recent keyframes' verified loop edges, the evidence a
+        later edge is confirmed by (``loop.confirm_keyframes``): rows (query keyframe, the world-frame correction
+        ``C = T_i Z_ik T_k^-1`` of :func:`~mipslam.loop.closer.implied_corrections`, row-major 4x4), float64 CPU
+        # [P, 17]
+    """
+
+    graph: PoseGraph
+    descriptors: torch.Tensor
+    recent_corrections: torch.Tensor = field(default_factory=lambda: torch.zeros(0, 17, dtype=torch.float64))
+
+    @staticmethod
+    def empty(descriptor_options: DescriptorOptions = DescriptorOptions()) -> "LoopState":
+        return LoopState(PoseGraph.empty(), torch.zeros(0, descriptor_options.dimension, dtype=torch.float32))
+
+    @property
+    def num_keyframes(self) -> int:
+        return int(self.descriptors.shape[0])
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """Plain tensors only (``torch.load(..., weights_only=True)`` reads them)."""
+        tensors = {f"graph.{k}": v for k, v in self.graph.state_dict().items()}
+        tensors["descriptors"] = self.descriptors.detach().cpu().clone()
+        tensors["recent_corrections"] = self.recent_corrections.detach().cpu().clone()
+        return tensors
+
+    @staticmethod
+    def from_state_dict(tensors: dict[str, torch.Tensor]) -> "LoopState":
+        """Inverse of :meth:`state_dict`; raises CheckpointError on a missing or inconsistent entry."""
+        if "descriptors" not in tensors:
+            raise CheckpointError("loop-closure state in checkpoint lacks 'descriptors'; start a new run")
+        graph = PoseGraph.from_state_dict({k[len("graph."):]: v for k, v in tensors.items() if k.startswith("graph.")})
+        descriptors = tensors["descriptors"].to(torch.float32).cpu()
+        if descriptors.dim() != 2 or descriptors.shape[0] != graph.num_nodes:
+            raise CheckpointError(f"loop-closure state in checkpoint is inconsistent: {graph.num_nodes} pose-graph nodes "
+                                  f"but descriptors of shape {tuple(descriptors.shape)}; start a new run")
+        # a checkpoint written before the confirmation existed has none: the next edges wait for new evidence
+        recent = tensors.get("recent_corrections", torch.zeros(0, 17, dtype=torch.float64)).to(torch.float64).cpu()
+        if recent.dim() != 2 or recent.shape[1] != 17:
+            raise CheckpointError("loop-closure state in checkpoint has recent corrections of shape "
+                                  f"{tuple(recent.shape)}, expected [P, 17]; start a new run")
+        return LoopState(graph, descriptors, recent)
+
+
+class TrackedPose(Protocol):
+    """What the state records of a frame's tracking: :class:`mipslam.tracking.TrackingResult` is one (the state,
+    the data layer, does not import the stage; docs/design.md "Import layers")."""
+
+    T_wc: torch.Tensor  # [4, 4] float64
+    exposure: torch.Tensor  # [2]
+    loss: float
+    iterations: int
+    status: str
+
+
 @dataclass
 class SLAMState:
     gaussian_map: GaussianMap
@@ -69,7 +139,7 @@ class SLAMState:
     loop_log: dict[str, list[dict[str, Any]]] = field(default_factory=lambda: {"candidates": [], "optimisations": []})
 
     @classmethod
-    def initial(cls, mapping_options: "MappingOptions", seed: int, device: torch.device) -> "SLAMState":
+    def initial(cls, mapping_options: LearningRates, seed: int, device: torch.device) -> "SLAMState":
         gmap = GaussianMap.empty(device=device)
         generator = torch.Generator(device="cpu")
         generator.manual_seed(seed)
@@ -155,7 +225,7 @@ class SLAMState:
             self.frames[position] = replace(record, T_wc=T)
         return self.gaussian_map.transform_by_anchor(corrections) if move_map else 0
 
-    def append_frame(self, index: int, timestamp: float, tracked: "TrackingResult", is_keyframe: bool) -> FrameRecord:
+    def append_frame(self, index: int, timestamp: float, tracked: TrackedPose, is_keyframe: bool) -> FrameRecord:
         """Record a tracked frame (sequence ``index``, ``timestamp`` in seconds); a keyframe takes the next
         keyframe id, every frame the last keyframe as its reference. Returns the record."""
         last = self.last_keyframe_id()
@@ -165,7 +235,7 @@ class SLAMState:
         self.frames.append(record)
         return record
 
-    def end_frame(self, tracked: "TrackingResult", running_loss_momentum: float) -> FrameRecord:
+    def end_frame(self, tracked: TrackedPose, running_loss_momentum: float) -> FrameRecord:
         """After all stages: a well-tracked frame updates the running tracking loss
         (:func:`update_running_loss`), and the map's size is recorded. Returns the frame's record."""
         if tracked.status == "ok":
@@ -209,9 +279,7 @@ class SLAMState:
 
     @classmethod
     def from_checkpoint(cls, tensors: dict[str, torch.Tensor], metadata: dict[str, Any],
-                        mapping_options: "MappingOptions", device: torch.device) -> "SLAMState":
-        from mipslam.errors import CheckpointError
-
+                        mapping_options: LearningRates, device: torch.device) -> "SLAMState":
         if metadata.get("state_version") != STATE_VERSION:
             raise CheckpointError(f"checkpoint holds SLAM state version {metadata.get('state_version')}, this mipslam "
                                   f"reads version {STATE_VERSION}; start a new run")

@@ -26,13 +26,13 @@ from mipslam.gaussians import GaussianMap, GaussianParameters
 from mipslam.geometry import se3_exp, se3_inverse, se3_log
 from mipslam.io.ply import read_map_ply
 from mipslam.io.tum import read_tum_trajectory
-from mipslam.loop.closer import LoopOptions, LoopState
+from mipslam.loop.closer import LoopOptions
 from fault_injection import BiasedOdometer, WrongLoop
 from tiny_runs import split_settings
 from mipslam.observer import Observer
 from mipslam.pipeline import PipelineHooks, run_slam
 from mipslam.rendering import render_view
-from mipslam.state import FrameRecord, SLAMState
+from mipslam.state import FrameRecord, LoopState, SLAMState
 
 F64 = torch.float64
 

@@ -30,6 +30,7 @@ import torch
 
 from mipslam.errors import EvaluationError
 from mipslam.geometry.resample import resize_area
+from mipslam.losses.metrics import check_image_pair, psnr
 from mipslam.losses.structural import gaussian_window_1d, ssim as structural_ssim
 
 __all__ = [
@@ -43,36 +44,6 @@ __all__ = [
 ]
 
 
-def _check_pair(image: torch.Tensor, target: torch.Tensor, what: str, min_dims: int) -> None:
-    if image.shape != target.shape:
-        raise EvaluationError(f"{what}: rendered {tuple(image.shape)} and ground truth {tuple(target.shape)} differ in shape")
-    if image.dim() < min_dims:
-        raise EvaluationError(f"{what}: expected at least {min_dims} dimensions, got shape {tuple(image.shape)}")
-
-
-def psnr(
-    image: torch.Tensor,  # [..., H, W, C] in [0, max_value]
-    target: torch.Tensor,  # [..., H, W, C]
-    *,
-    mask: torch.Tensor | None = None,  # [..., H, W] bool (broadcast over the batch)
-    max_value: float = 1.0,
-) -> torch.Tensor:  # [...] dB
-    """Peak signal-to-noise ratio per image, ``10 log10(max_value^2 / MSE)`` over the (masked) pixels."""
-    _check_pair(image, target, "PSNR", 3)
-    squared = (image - target).pow(2).mean(dim=-1)  # [..., H, W]
-    if mask is None:
-        mse = squared.mean(dim=(-2, -1))
-    else:
-        if mask.shape[-2:] != squared.shape[-2:]:
-            raise EvaluationError(f"PSNR: mask {tuple(mask.shape)} does not match the images {tuple(image.shape)}")
-        mask = mask.to(torch.bool).expand_as(squared)
-        count = mask.sum(dim=(-2, -1))
-        if bool((count == 0).any()):
-            raise EvaluationError("PSNR: the mask selects no pixel of an image; evaluate it without a mask or skip it")
-        mse = torch.where(mask, squared, 0.0).sum(dim=(-2, -1)) / count
-    return 10.0 * torch.log10(max_value**2 / mse)
-
-
 def ssim(
     image: torch.Tensor,  # [..., H, W, C] in [0, max_value]
     target: torch.Tensor,  # [..., H, W, C]
@@ -84,7 +55,7 @@ def ssim(
 ) -> torch.Tensor:  # [...]
     """Structural similarity per image (conventions in the module docstring; ``same`` = 3DGS zero padding):
     :func:`mipslam.losses.structural.ssim` with the evaluation's checks. Differentiable."""
-    _check_pair(image, target, "SSIM", 3)
+    check_image_pair(image, target, "SSIM", 3)
     try:
         return structural_ssim(image, target, window_size=window_size, sigma=sigma, padding=padding,
                                max_value=max_value)
@@ -99,7 +70,7 @@ def depth_l1(
     mask: torch.Tensor | None = None,  # [..., H, W] bool, extra restriction (e.g. rendered opacity)
 ) -> torch.Tensor:  # [...] metres
     """Mean absolute depth error in metres over pixels with valid ground truth (and ``mask``), per image."""
-    _check_pair(depth, depth_gt, "depth L1", 2)
+    check_image_pair(depth, depth_gt, "depth L1", 2)
     valid = torch.isfinite(depth_gt) & (depth_gt > 0)
     if mask is not None:
         valid = valid & mask.to(torch.bool)

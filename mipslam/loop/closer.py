@@ -47,18 +47,18 @@ from typing import TYPE_CHECKING, Any, Callable, Literal, NamedTuple
 
 import torch
 
-from mipslam.config import LoopConfig, section_options
-from mipslam.errors import CheckpointError, MipslamError
-from mipslam.evaluation.image_metrics import psnr
+from mipslam.config import LoopConfig, RenderConfig, section_options
+from mipslam.errors import MipslamError
 from mipslam.geometry import rotation_angle, se3_inverse
+from mipslam.losses.metrics import psnr
 from mipslam.losses.photometric import apply_affine_exposure
 from mipslam.loop.descriptors import CandidateOptions, DescriptorOptions, global_descriptor, select_loop_candidates
 from mipslam.loop.pose_graph import PoseGraph, edge_residuals, mahalanobis_sq
 from mipslam.loop.registration import RegistrationOptions, RegistrationResult, register_rgbd_pair
 from mipslam.loop.solver import PGOOptions, PGOResult, optimize_pose_graph_window
-from mipslam.mapping import Mapper, refine_after_correction
 from mipslam.observer import Observer
 from mipslam.rendering import render_view
+from mipslam.state import LoopState
 from mipslam.types import Intrinsics
 
 if TYPE_CHECKING:
@@ -75,60 +75,17 @@ VerificationHook = Callable[[int, int, RegistrationResult], RegistrationResult]
 """(candidate keyframe i, query keyframe k, verification result) -> result: fault injection for
 tests and benchmarks (e.g. a deliberately wrong loop); a normal run has none."""
 
+MapRefit = Callable[[list[int], int], int]
+"""(keyframe ids, steps) -> steps taken: the mapping stage's refit of the map at the keyframes' corrected poses
+after a correction moved them (:func:`mipslam.mapping.refine_after_correction`), which the pipeline passes in:
+the stages talk through the pipeline, not through each other's modules (docs/design.md "Import layers")."""
+
 
 def _finite_or_none(value: float) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
-# ----------------------------------------------------------------------------- state
-
-
-@dataclass(frozen=True)
-class LoopState:
-    """The loop-closure part of the SLAM state (it goes into the checkpoint as plain tensors).
-
-    graph: pose graph whose node k is keyframe k (poses are the estimates of the last update)
-    descriptors: global descriptor of every keyframe, float32 CPU   # [K, D]
-    recent_corrections: the corrections implied by the recent keyframes' verified loop edges, the evidence a
-        later edge is confirmed by (``LoopOptions.confirm_keyframes``): rows (query keyframe, the world-frame correction
-        ``C = T_i Z_ik T_k^-1`` of :func:`implied_corrections`, row-major 4x4), float64 CPU   # [P, 17]
-    """
-
-    graph: PoseGraph
-    descriptors: torch.Tensor
-    recent_corrections: torch.Tensor = field(default_factory=lambda: torch.zeros(0, 17, dtype=torch.float64))
-
-    @staticmethod
-    def empty(descriptor_options: DescriptorOptions = DescriptorOptions()) -> "LoopState":
-        return LoopState(PoseGraph.empty(), torch.zeros(0, descriptor_options.dimension, dtype=torch.float32))
-
-    @property
-    def num_keyframes(self) -> int:
-        return int(self.descriptors.shape[0])
-
-    def state_dict(self) -> dict[str, torch.Tensor]:
-        """Plain tensors only (``torch.load(..., weights_only=True)`` reads them)."""
-        tensors = {f"graph.{k}": v for k, v in self.graph.state_dict().items()}
-        tensors["descriptors"] = self.descriptors.detach().cpu().clone()
-        tensors["recent_corrections"] = self.recent_corrections.detach().cpu().clone()
-        return tensors
-
-    @staticmethod
-    def from_state_dict(tensors: dict[str, torch.Tensor]) -> "LoopState":
-        """Inverse of :meth:`state_dict`; raises CheckpointError on a missing or inconsistent entry."""
-        if "descriptors" not in tensors:
-            raise CheckpointError("loop-closure state in checkpoint lacks 'descriptors'; start a new run")
-        graph = PoseGraph.from_state_dict({k[len("graph."):]: v for k, v in tensors.items() if k.startswith("graph.")})
-        descriptors = tensors["descriptors"].to(torch.float32).cpu()
-        if descriptors.dim() != 2 or descriptors.shape[0] != graph.num_nodes:
-            raise CheckpointError(f"loop-closure state in checkpoint is inconsistent: {graph.num_nodes} pose-graph nodes "
-                                  f"but descriptors of shape {tuple(descriptors.shape)}; start a new run")
-        # a checkpoint written before the confirmation existed has none: the next edges wait for new evidence
-        recent = tensors.get("recent_corrections", torch.zeros(0, 17, dtype=torch.float64)).to(torch.float64).cpu()
-        if recent.dim() != 2 or recent.shape[1] != 17:
-            raise CheckpointError("loop-closure state in checkpoint has recent corrections of shape "
-                                  f"{tuple(recent.shape)}, expected [P, 17]; start a new run")
-        return LoopState(graph, descriptors, recent)
+# ----------------------------------------------------------------------------- the stage's input
 
 
 @dataclass(frozen=True)
@@ -687,11 +644,12 @@ def keyframe_view(state: "SLAMState", frames: "FrameCache", keyframe_id: int) ->
     return KeyframeView(keyframe_id, record.index, frame.color, frame.depth, frame.intrinsics)
 
 
-def close_loops(closer: LoopCloser, mapper: Mapper, state: "SLAMState", frames: "FrameCache") -> LoopStep:
+def close_loops(closer: LoopCloser, state: "SLAMState", frames: "FrameCache", render_config: RenderConfig,
+                refit: MapRefit) -> LoopStep:
     """The loop-closure step on the newest keyframe of ``state``: :meth:`LoopCloser.process_keyframe` with the
     odometry evidence since the previous keyframe; the step's reports go into ``state.loop_log``, and an
-    accepted correction moves the keyframes, the other frames and the map (:func:`correct_map`, which refits
-    the map with ``mapper``)."""
+    accepted correction moves the keyframes, the other frames and the map (:func:`correct_map`, which renders
+    the map with ``render_config``, the mapping stage's, and refits it with ``refit``)."""
     keyframe_id = state.last_keyframe_id()
     record = state.keyframe_record(keyframe_id)
     since = state.keyframe_frames[keyframe_id - 1] if keyframe_id > 0 else len(state.frames) - 1
@@ -704,17 +662,17 @@ def close_loops(closer: LoopCloser, mapper: Mapper, state: "SLAMState", frames: 
     if step.optimisation is not None:
         entry = step.optimisation.to_dict()
         if step.corrected_T_wc is not None:
-            entry.update(correct_map(closer, mapper, state, frames, step))
+            entry.update(correct_map(closer, state, frames, step, render_config, refit))
         state.loop_log["optimisations"].append(entry)
     return step
 
 
-def correct_map(closer: LoopCloser, mapper: Mapper, state: "SLAMState", frames: "FrameCache",
-                step: LoopStep) -> dict[str, Any]:
+def correct_map(closer: LoopCloser, state: "SLAMState", frames: "FrameCache", step: LoopStep,
+                render_config: RenderConfig, refit: MapRefit) -> dict[str, Any]:
     """Apply an accepted pose-graph correction (:meth:`~mipslam.state.SLAMState.correct_keyframe_poses`), then
     ``LoopOptions.refine_iterations`` mapping steps over the loop's keyframes (the query and its loop partners) at
-    their corrected, fixed poses (:func:`~mipslam.mapping.refine_after_correction`). Returns the loops.json
-    entry: Gaussians moved, refinement steps and seconds.
+    their corrected, fixed poses (``refit``: :func:`~mipslam.mapping.refine_after_correction`, from the
+    pipeline). Returns the loops.json entry: Gaussians moved, refinement steps and seconds.
 
     The map's PSNR (dB) at those keyframes against their images is measured before the correction at the old
     poses and after the Gaussians moved with their anchor keyframes: a correction whose moved map renders them
@@ -728,7 +686,7 @@ def correct_map(closer: LoopCloser, mapper: Mapper, state: "SLAMState", frames: 
     start = time.perf_counter()
 
     def measure(poses) -> list[float]:
-        return [_keyframe_psnr(mapper, state, frames, k, poses(k)) for k in check]
+        return [_keyframe_psnr(render_config, state, frames, k, poses(k)) for k in check]
 
     before = measure(lambda k: state.keyframe_record(k).T_wc)
     poses_only = measure(lambda k: step.corrected_T_wc[k]) if diagnostics else None
@@ -746,7 +704,7 @@ def correct_map(closer: LoopCloser, mapper: Mapper, state: "SLAMState", frames: 
         entry.update({"gaussians_moved": 0, "refine_iterations": 0, "applied": False, "undone": True,
                       "map_correction_s": time.perf_counter() - start})
         return entry
-    refine_iterations = refine_after_correction(mapper, state, frames, check, closer.config.refine_iterations)
+    refine_iterations = refit(check, closer.config.refine_iterations)
     entry["refine_iterations"] = refine_iterations
     if diagnostics:
         after = measure(lambda k: state.keyframe_record(k).T_wc)
@@ -764,7 +722,7 @@ def correct_map(closer: LoopCloser, mapper: Mapper, state: "SLAMState", frames: 
 
 
 @torch.no_grad()
-def _keyframe_psnr(mapper: Mapper, state: "SLAMState", frames: "FrameCache", keyframe_id: int,
+def _keyframe_psnr(render_config: RenderConfig, state: "SLAMState", frames: "FrameCache", keyframe_id: int,
                    T_wc: torch.Tensor) -> float:
     """PSNR (dB) of the map rendered at ``T_wc`` [4, 4] (camera-to-world) against keyframe ``keyframe_id``'s
     image, in the render config's footprint mode, with the keyframe's exposure."""
@@ -772,6 +730,6 @@ def _keyframe_psnr(mapper: Mapper, state: "SLAMState", frames: "FrameCache", key
     frame = frames[record.index]
     gmap = state.gaussian_map
     out = render_view(gmap.activated(), se3_inverse(T_wc.to(torch.float64)).to(device=gmap.device, dtype=gmap.dtype),
-                      frame.intrinsics, mapper.render_config)
+                      frame.intrinsics, render_config)
     exposure = record.exposure.to(out.color)
     return float(psnr(apply_affine_exposure(out.color, exposure[0], exposure[1]).clamp(0, 1), frame.color))

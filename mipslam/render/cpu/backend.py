@@ -16,6 +16,7 @@ from mipslam.render import footprint, projection
 from mipslam.render.cpu.autograd import (ProjectFootprints, RasterizeProjected, _gauss_legendre_f32,
                                          _opacity_has_pose_gradient, _params_for)
 from mipslam.render.cpu.library import load_extension
+from mipslam.render.torch_backend import RenderOutput, check_camera_values, rasterize_torch
 
 #: Footprint kernels of the library: point/mip/ewa are all a centre sample of the mode's covariance.
 MODE_IDS = {"point": 0, "mip": 0, "ewa": 0, "eaa": 1, "exact": 2}
@@ -166,8 +167,6 @@ def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, h
     Two C++ stages, each an autograd function with a hand-written backward: the fused projection
     (:class:`ProjectFootprints`) and the tile rasterizer (:class:`RasterizeProjected`).
     """
-    from mipslam.render import RenderOutput
-
     reason = unsupported_reason(means, colors, mode, options)
     if reason is not None:
         raise BackendUnavailableError(f"rasterize: {reason}")
@@ -267,9 +266,7 @@ def rasterize_unfused(means, quats, scales, opacities, colors, viewmat, K, width
     """The cpu backend with the torch projection (autograd through ~100 tensor operations) in front of the
     C++ rasterizer: the path before the fused projection, kept for gradients with respect to K or the 3D
     filter's sampling rate, and as the benchmark's baseline."""
-    from mipslam.render import _check_camera_values, rasterize_torch
-
-    _check_camera_values(viewmat, K)
+    check_camera_values(viewmat, K)
     out = rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width, height, mode, options,
                           rasterizer=rasterize_projected)
     return dataclasses.replace(out, backend="cpu")
