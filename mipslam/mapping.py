@@ -415,7 +415,8 @@ def refine_map(mapper: Mapper, state: "SLAMState", frames: "FrameCache", options
     (:func:`final_refinement_steps`), one keyframe per step, every keyframe once per pass in an order drawn from
     the run's generator, on the keyframes' images as the camera recorded them (:meth:`Mapper.fill_holes` first).
     Keyframe poses move only with ``options.lr_poses`` > 0; every frame then follows its keyframes
-    (:meth:`SLAMState.correct_keyframe_poses`, the map held where the refinement left it). Returns the steps taken
+    (:meth:`SLAMState.correct_keyframe_poses`, the map held where the refinement left it). The means' learning rate
+    decays over the steps (``MEANS_LR_FINAL_RATIO``). Returns the steps taken
     (fewer if a loss turned non-finite; the map then keeps its last finite state)."""
     count = len(state.keyframe_frames)
     iterations = final_refinement_steps(passes, count)
@@ -439,8 +440,10 @@ def refine_map(mapper: Mapper, state: "SLAMState", frames: "FrameCache", options
             optimize_pose=False), keyframe.frame_index)
 
     refiner = KeyframeRefiner(state.gaussian_map, state.optimizer, keyframes, load, options, mapper.render_config,
-                              state.generator, cache_size=max(count, mapper.config.keyframe_cache))
+                              state.generator, cache_size=max(count, mapper.config.keyframe_cache),
+                              decay_steps=iterations)
     losses = refiner.run(iterations)
+    refiner.restore_learning_rates()
     refined = refiner.refined_poses()
     if refined:
         poses = state.keyframe_poses()

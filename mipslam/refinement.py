@@ -34,6 +34,9 @@ from mipslam.types import Intrinsics
 
 
 MIN_STEPS_PER_PASS = 10  # a run's final refinement: one pass is at least this many steps
+# Over a refinement of known length the means' learning rate decays exponentially to this fraction (3D Gaussian
+# Splatting's position schedule, 100x): fr3_teddy_100 `balanced` novel PSNR 25.39 -> 25.93 dB (docs/mapping.md)
+MEANS_LR_FINAL_RATIO = 0.01
 
 
 @dataclass(frozen=True)
@@ -100,13 +103,18 @@ class KeyframeRefiner:
 
     def __init__(self, gmap: GaussianMap, optimizer: GaussianOptimizer, keyframes: Sequence[RefineKeyframe],
                  load: Callable[[RefineKeyframe], KeyframeImage], options: RefineOptions,
-                 render_config: RenderConfig, generator: torch.Generator, *, cache_size: int = 64):
+                 render_config: RenderConfig, generator: torch.Generator, *, cache_size: int = 64,
+                 decay_steps: int = 0):
         if not keyframes:
             raise ValueError("KeyframeRefiner needs at least one keyframe")
         self.map, self.optimizer, self.keyframes = gmap, optimizer, list(keyframes)
         self.load, self.options, self.render_config, self.generator = load, options, render_config, generator
         self.cache_size = cache_size
         self.steps = 0
+        # decay_steps > 0: the means' rate falls from the optimizer's to MEANS_LR_FINAL_RATIO of it over that many
+        # steps (:meth:`step`; the caller restores it with :meth:`restore_learning_rates`); 0 keeps it constant
+        self.decay_steps = decay_steps
+        self._means_lr = optimizer.learning_rates["means"]
         self._pending: list[int] = []  # positions in self.keyframes still to visit in this pass
         self._images: OrderedDict[int, tuple[KeyframeImage, RGBDMasks]] = OrderedDict()
         self._ssim_targets = SSIMTargetCache(max_entries=max(1, cache_size))  # the keyframes' blurred moments
@@ -163,6 +171,9 @@ class KeyframeRefiner:
         loss = self.loss(image, masks, T_cw, exposure, rows)
         if not torch.isfinite(loss):
             return None
+        if self.decay_steps > 0:
+            progress = min(self.steps, self.decay_steps - 1) / max(1, self.decay_steps - 1)
+            self.optimizer.set_learning_rate("means", self._means_lr * MEANS_LR_FINAL_RATIO ** progress)
         self.optimizer.zero_grad()
         if self._pose_optimizer is not None:
             self._pose_optimizer.zero_grad(set_to_none=True)
@@ -191,6 +202,10 @@ class KeyframeRefiner:
         if cfg.isotropy_weight > 0:
             loss = loss + cfg.isotropy_weight * isotropy_loss(g.scales)
         return loss
+
+    def restore_learning_rates(self) -> None:
+        """The means' learning rate the optimizer had before a decaying refinement."""
+        self.optimizer.set_learning_rate("means", self._means_lr)
 
     # ------------------------------------------------------------------ state (resume)
 

@@ -7,7 +7,7 @@ import torch
 from mipslam.mapping import MappingOptions
 from mipslam.gaussians import GaussianMap, GaussianOptimizer
 from mipslam.geometry import se3_inverse
-from mipslam.refinement import KeyframeImage, KeyframeRefiner, RefineKeyframe, RefineOptions
+from mipslam.refinement import MEANS_LR_FINAL_RATIO, KeyframeImage, KeyframeRefiner, RefineKeyframe, RefineOptions
 from tiny_runs import map_of_first_frame
 
 
@@ -24,7 +24,7 @@ def two_view_problem(tmp_path_factory):
     return config, gmap.detached(), frames, keyframes
 
 
-def _refiner(problem, options: RefineOptions, seed: int = 0) -> KeyframeRefiner:
+def _refiner(problem, options: RefineOptions, seed: int = 0, decay_steps: int = 0) -> KeyframeRefiner:
     config, params, frames, keyframes = problem
     gmap = GaussianMap(params)
     optimizer = GaussianOptimizer.from_config(gmap, MappingOptions.from_config(config.mapping))
@@ -33,7 +33,8 @@ def _refiner(problem, options: RefineOptions, seed: int = 0) -> KeyframeRefiner:
         frame = frames[keyframe.frame_index]
         return KeyframeImage(frame.color, frame.depth, frame.intrinsics)
 
-    return KeyframeRefiner(gmap, optimizer, keyframes, load, options, config.render, torch.Generator().manual_seed(seed))
+    return KeyframeRefiner(gmap, optimizer, keyframes, load, options, config.render, torch.Generator().manual_seed(seed),
+                           decay_steps=decay_steps)
 
 
 def _mean_loss(refiner: KeyframeRefiner) -> float:
@@ -126,3 +127,19 @@ def test_a_state_for_other_keyframes_is_refused(two_view_problem):
 def test_options_out_of_range_are_refused():
     with pytest.raises(ValueError, match="alpha_color"):
         RefineOptions(alpha_color=1.5)
+
+
+def test_a_refinement_of_known_length_decays_the_means_rate_and_restores_it(two_view_problem):
+    refiner = _refiner(two_view_problem, RefineOptions(), decay_steps=5)
+    base = refiner.optimizer.learning_rates
+    rates = []
+    for _ in range(5):
+        assert refiner.step() is not None
+        rates.append(refiner.optimizer.learning_rates["means"])
+    # exponential from the optimizer's rate to MEANS_LR_FINAL_RATIO of it; the other groups keep theirs
+    assert rates[0] == pytest.approx(base["means"]) and rates[-1] == pytest.approx(base["means"] * MEANS_LR_FINAL_RATIO)
+    assert all(later < earlier for earlier, later in zip(rates, rates[1:]))
+    assert {k: v for k, v in refiner.optimizer.learning_rates.items() if k != "means"} == \
+        {k: v for k, v in base.items() if k != "means"}
+    refiner.restore_learning_rates()
+    assert refiner.optimizer.learning_rates == base
