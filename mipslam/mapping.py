@@ -64,7 +64,7 @@ from mipslam.types import Intrinsics
 FILL_HOLES_WIDTH_RATIO = 0.05
 
 if TYPE_CHECKING:
-    from mipslam.datasets import FrameCache
+    from mipslam.datasets import FrameCache, RGBDSequence
     from mipslam.types import Frame
     from mipslam.state import FrameRecord, SLAMState
 
@@ -410,10 +410,11 @@ def refine_after_correction(mapper: Mapper, state: "SLAMState", frames: "FrameCa
 
 
 def refine_map(mapper: Mapper, state: "SLAMState", frames: "FrameCache", options: RefineOptions,
-               passes: int) -> int:
+               passes: int, images: "RGBDSequence | None" = None) -> int:
     """The final refinement (mipslam/refinement.py) after the last frame: ``passes`` passes of the refinement loss
     (:func:`final_refinement_steps`), one keyframe per step, every keyframe once per pass in an order drawn from
-    the run's generator, on the keyframes' images as the camera recorded them (:meth:`Mapper.fill_holes` first).
+    the run's generator, on the keyframes' images as the camera recorded them, read from ``images`` (any
+    resolution; None: the frames the run kept, ``frames``) after :meth:`Mapper.fill_holes`.
     Keyframe poses move only with ``options.lr_poses`` > 0; every frame then follows its keyframes
     (:meth:`SLAMState.correct_keyframe_poses`, the map held where the refinement left it). The means' learning rate
     decays over the steps (``MEANS_LR_FINAL_RATIO``). Returns the steps taken
@@ -429,7 +430,7 @@ def refine_map(mapper: Mapper, state: "SLAMState", frames: "FrameCache", options
     def load(keyframe: RefineKeyframe) -> KeyframeImage:
         # the image as the camera recorded it: what a view of the map is compared with (a rolling shutter's rows
         # moved to one instant for tracking are a resampled image, and not what the camera saw)
-        frame = frames.sequence[keyframe.frame_index]
+        frame = frames[keyframe.frame_index] if images is None else images[keyframe.frame_index]
         return KeyframeImage(frame.color.to(device), frame.depth.to(device), frame.intrinsics)
 
     filled = 0

@@ -22,7 +22,7 @@ from typing import Any, Callable, Mapping
 import torch
 
 from mipslam.config import Config
-from mipslam.datasets import FrameCache, RGBDSequence
+from mipslam.datasets import FrameCache, RGBDSequence, make_sequence
 from mipslam.frontend import Frontend
 from mipslam.io.run_folder import write_json_atomic
 from mipslam.keyframes import KeyframeOptions, insert_keyframe, keyframe_decision
@@ -39,6 +39,9 @@ from mipslam.types import Frame
 # Keyframes' images kept in memory for mapping and loop verification (MiB; a 320x240 keyframe takes 1.2 MiB); the
 # others are read again from the sequence when needed.
 KEYFRAME_CACHE_MIB = 256
+# The final refinement reads the recorded images at no coarser than this downscale of the camera's resolution:
+# Replica room0 (read at 1/4) novel views at 1200x680 (docs/mapping.md)
+REFINE_MAX_DOWNSCALE = 2
 
 log = logging.getLogger(__name__)
 
@@ -175,6 +178,18 @@ def frame_after_tracking(stages: Stages, state: SLAMState, frame: Frame, tracked
 
 # ----------------------------------------------------------------------------- the run
 
+def final_refinement_images(config: Config, sequence: RGBDSequence) -> RGBDSequence | None:
+    """The images the final refinement trains on: the recorded ones, read at no coarser than
+    1/``REFINE_MAX_DOWNSCALE`` of the camera's resolution (a map refined at a quarter of it stays blurred at
+    the camera's own; Replica room0 reads at 1/4); None for a stream that cannot be read again (a live camera:
+    the refinement then trains on the frames the run kept)."""
+    if not sequence.random_access:
+        return None
+    if config.dataset.downscale <= REFINE_MAX_DOWNSCALE:
+        return sequence
+    return make_sequence(replace(config.dataset, downscale=REFINE_MAX_DOWNSCALE))
+
+
 def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evaluate: bool = True,
              hooks: PipelineHooks | None = None, observer: Observer | None = None) -> RunSummary:
     """Run SLAM on the configured sequence into ``run_dir`` (resuming from its last good checkpoint).
@@ -200,7 +215,8 @@ def run_slam(config: Config, run_dir: str | Path, *, resume: bool = False, evalu
     # the state the frames left (as an uninterrupted run would), and resuming a finished run repeats it exactly.
     if config.refine.passes and len(state.gaussian_map):
         with observer.stage("refine"):
-            refine_map(stages.mapper, state, stages.frames, refine_options(config), config.refine.passes)
+            refine_map(stages.mapper, state, stages.frames, refine_options(config), config.refine.passes,
+                       final_refinement_images(config, stages.frames.sequence))
     metrics = _write_outputs(run, config, evaluate)
     return RunSummary(run.folder.root, state.next_frame, len(state.keyframe_frames),
                       sum(not f.tracked for f in state.frames), len(state.gaussian_map),

@@ -176,3 +176,21 @@ def test_depth_taken_late_and_a_rolling_shutter_are_undone_and_resume_exactly(tm
                                atol=1e-5, rtol=0)
     run_slam(tiny_config(sequence), off_dir, evaluate=False)  # off by default
     assert not np.array_equal(read_tum_trajectory(off_dir / "traj_est.txt").T_wc, full.T_wc)
+
+
+def test_the_final_refinement_reads_the_recorded_images_at_half_the_cameras_resolution_or_finer(tiny_sequence):
+    from mipslam.datasets import make_sequence
+    from mipslam.pipeline import final_refinement_images
+
+    for downscale, width in ((1, 40), (2, 20), (4, 20)):  # 40x30 frames: the refinement never reads below 1/2
+        config = tiny_config(tiny_sequence, f"dataset.downscale={downscale}")
+        sequence = make_sequence(config.dataset)
+        images = final_refinement_images(config, sequence)
+        if downscale <= 2:
+            assert images is sequence
+        assert images[3].color.shape[1] == width and images[3].intrinsics.width == width
+
+    class Stream:  # a live camera: frames cannot be read again
+        random_access = False
+
+    assert final_refinement_images(tiny_config(tiny_sequence), Stream()) is None
