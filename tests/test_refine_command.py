@@ -82,9 +82,12 @@ def test_refine_writes_its_outputs_beside_the_run_and_never_changes_the_runs_own
     for name in ("map.ply", "traj_est.txt", "keyframes.txt", "progress.json", "metrics.json"):
         assert (refined / name).is_file(), name
     assert 1 <= len(list_checkpoints(refined / "checkpoints")) <= 2
-    # poses not refined: the run's own files, byte for byte
-    assert (refined / "traj_est.txt").read_bytes() == (run_dir / "traj_est.txt").read_bytes()
-    assert (refined / "keyframes.txt").read_bytes() == (run_dir / "keyframes.txt").read_bytes()
+    # keyframe poses refined (the synthetic config's refine.lr_poses): every frame keeps its timestamp and moves
+    # by millimetres at most
+    for name in ("traj_est.txt", "keyframes.txt"):
+        moved, source = read_tum_trajectory(refined / name), read_tum_trajectory(run_dir / name)
+        np.testing.assert_array_equal(moved.timestamps, source.timestamps)
+        assert np.abs(moved.T_wc[:, :3, 3] - source.T_wc[:, :3, 3]).max() < 5e-3, name
     assert len(read_map_ply(refined / "map.ply")) == len(read_map_ply(run_dir / "map.ply"))
     progress = json.loads((refined / "progress.json").read_text())
     records = progress["records"]
@@ -95,9 +98,9 @@ def test_refine_writes_its_outputs_beside_the_run_and_never_changes_the_runs_own
     assert metrics["evaluation"]["map"] == "refined/map.ply" and metrics["map"]["file"] == "refined/map.ply"
     assert metrics["render"]["protocol"]["map"]["file"] == "refined/map.ply"
     assert metrics["render"]["protocol"]["resolution"] == "native"  # the run's own protocol
-    assert metrics["refinement"]["steps"] == 6 and metrics["refinement"]["poses_refined"] is False
+    assert metrics["refinement"]["steps"] == 6 and metrics["refinement"]["poses_refined"] is True
     run_metrics = json.loads((run_dir / "metrics.json").read_text())
-    assert metrics["trajectory"]["ate"]["rmse"] == pytest.approx(run_metrics["trajectory"]["ate"]["rmse"], abs=1e-9)
+    assert metrics["trajectory"]["ate"]["rmse"] == pytest.approx(run_metrics["trajectory"]["ate"]["rmse"], abs=2e-3)
     page = (run_dir / "report" / "report.html").read_text()
     assert "Refinement (refined/)" in page and "refinement_psnr.png" in page
     assert (run_dir / "report" / "refinement_psnr.png").stat().st_size > 5_000
