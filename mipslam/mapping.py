@@ -55,7 +55,8 @@ from mipslam.geometry.se3 import se3_exp, se3_inverse
 from mipslam.losses.frequency import frequency_loss
 from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, coverage_loss, rgbd_l1_loss, rgbd_masks
 from mipslam.losses.regularizers import isotropy_loss
-from mipslam.refinement import KeyframeImage, KeyframeRefiner, RefineKeyframe, RefineOptions, final_refinement_steps
+from mipslam.refinement import (KeyframeImage, KeyframeRefiner, RefineKeyframe, RefineOptions, final_refinement_steps,
+                                image_loader, state_keyframes)
 from mipslam.rendering import frustum_indices, render_view, view_sampling_rates
 from mipslam.types import Intrinsics
 
@@ -103,10 +104,10 @@ class MappingResult:
 class KeyframeImages:
     """The images and loss masks of the last ``capacity`` keyframes mapping trained on, on the frames' device.
 
-    Mapping revisits its window's keyframes on every keyframe, and the final refinement all of them; the
-    run's frame cache holds the latest *frames*, so most of those keyframes had left it and were read and
-    resized from disk again (178 reads for 40 TUM frames instead of 40; 7 % of the CPU time of a ``fast`` run,
-    docs/mapping.md). Readers are deterministic, so a cached keyframe is exactly the one a read would give.
+    Mapping revisits its window's keyframes on every keyframe; the run's frame cache holds the latest *frames*,
+    so most of those keyframes would be read and resized from disk again (178 reads for 40 TUM frames instead of
+    40: 7 % of the CPU time of a ``fast`` run). Readers are deterministic, so a cached keyframe is exactly the one
+    a read would give.
     """
 
     def __init__(self, capacity: int, max_depth: float = 0.0):
@@ -423,22 +424,22 @@ def refine_map(mapper: Mapper, state: "SLAMState", frames: "FrameCache", options
     iterations = final_refinement_steps(passes, count)
     if iterations == 0:
         return 0
-    keyframes = [RefineKeyframe(kf, state.keyframe_record(kf).index, state.keyframe_record(kf).T_wc,
-                                state.keyframe_record(kf).exposure) for kf in range(count)]
-    device = state.gaussian_map.device
-
-    def load(keyframe: RefineKeyframe) -> KeyframeImage:
-        # the image as the camera recorded it: what a view of the map is compared with (a rolling shutter's rows
-        # moved to one instant for tracking are a resampled image, and not what the camera saw)
-        frame = frames[keyframe.frame_index] if images is None else images[keyframe.frame_index]
-        return KeyframeImage(frame.color.to(device), frame.depth.to(device), frame.intrinsics)
+    keyframes = state_keyframes(state)
+    # the images as the camera recorded them: what a view of the map is compared with (a rolling shutter's rows
+    # moved to one instant for tracking are a resampled image, and not what the camera saw)
+    read = image_loader((frames if images is None else images).__getitem__, state.gaussian_map.device)
+    loaded: dict[int, KeyframeImage] = {}  # read once for the hole filling, handed on to the refiner's cache
 
     filled = 0
     for keyframe in keyframes:
-        image = load(keyframe)
+        image = loaded[keyframe.keyframe_id] = read(keyframe)
         filled += mapper.fill_holes(state.gaussian_map, state.optimizer, MappingView(
             keyframe.keyframe_id, image.color, image.depth, keyframe.T_wc, keyframe.exposure, image.intrinsics,
             optimize_pose=False), keyframe.frame_index)
+
+    def load(keyframe: RefineKeyframe) -> KeyframeImage:
+        image = loaded.pop(keyframe.keyframe_id, None)
+        return read(keyframe) if image is None else image
 
     refiner = KeyframeRefiner(state.gaussian_map, state.optimizer, keyframes, load, options, mapper.render_config,
                               state.generator, cache_size=max(count, mapper.config.keyframe_cache),

@@ -58,7 +58,7 @@ from mipslam.errors import CheckpointError, ConfigError, DatasetError, Evaluatio
 from mipslam.gaussians import GaussianMap, GaussianOptimizer
 from mipslam.geometry import nearest_rigid
 from mipslam.io.run_folder import RefinedFolder, RunFolder, write_bytes_atomic, write_json_atomic
-from mipslam.refinement import KeyframeImage, KeyframeRefiner, RefineKeyframe, refine_options
+from mipslam.refinement import KeyframeRefiner, RefineKeyframe, image_loader, refine_options, state_keyframes
 from mipslam.mapping import MappingOptions
 from mipslam.run_control import PROGRESS_LOG_S, ctrl_c_after_the_frame, resolve_device
 from mipslam.state import SLAMState
@@ -261,10 +261,7 @@ def _load_start(folder: RunFolder, config: Config) -> _Start:
         raise MipslamError(f"{folder.root}: the run has no keyframes; there is nothing to refine over")
     poses = torch.from_numpy(trajectory.T_wc.copy()).to(torch.float64)
     state.set_poses(poses)
-    keyframes = [RefineKeyframe(kf, state.keyframe_record(kf).index, state.keyframe_record(kf).T_wc,
-                                state.keyframe_record(kf).exposure.to(torch.float32))
-                 for kf in range(len(state.keyframe_frames))]
-    return _Start(config, state, poses, keyframes, _sha256(folder.map_ply))
+    return _Start(config, state, poses, state_keyframes(state), _sha256(folder.map_ply))
 
 
 def _sha256(path: Path) -> str:
@@ -297,12 +294,7 @@ def _keyframe_loader(sequence, state: SLAMState, device: torch.device, keyframes
                 1e-4 * max(1.0, abs(record.timestamp)):
             raise DatasetError(sequence.root, f"frame {keyframe.frame_index} (keyframe {keyframe.keyframe_id}) is not "
                                               "the one the run read; was the dataset changed since the run?")
-
-    def load(keyframe: RefineKeyframe) -> KeyframeImage:
-        frame = sequence[keyframe.frame_index]
-        return KeyframeImage(frame.color.to(device), frame.depth.to(device), frame.intrinsics)
-
-    return load
+    return image_loader(sequence.__getitem__, device)
 
 
 def _image_cache_size(width: int, height: int, keyframes: int) -> int:

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import torch
 
@@ -30,7 +30,10 @@ from mipslam.losses.photometric import RGBDMasks, apply_affine_exposure, rgbd_l1
 from mipslam.losses.regularizers import isotropy_loss
 from mipslam.losses.structural import SSIMTargetCache, ssim_loss
 from mipslam.rendering import frustum_indices, render_view
-from mipslam.types import Intrinsics
+from mipslam.types import Frame, Intrinsics
+
+if TYPE_CHECKING:
+    from mipslam.state import SLAMState
 
 
 MIN_STEPS_PER_PASS = 10  # a run's final refinement: one pass is at least this many steps
@@ -91,6 +94,24 @@ class KeyframeImage:
     color: torch.Tensor
     depth: torch.Tensor
     intrinsics: Intrinsics
+
+
+def state_keyframes(state: "SLAMState") -> list[RefineKeyframe]:
+    """Every keyframe of ``state`` as the refinement visits it: id, frame index, current pose, exposure."""
+    records = (state.keyframe_record(kf) for kf in range(len(state.keyframe_frames)))
+    return [RefineKeyframe(kf, record.index, record.T_wc, record.exposure.to(torch.float32))
+            for kf, record in enumerate(records)]
+
+
+def image_loader(frames: Callable[[int], Frame], device: torch.device) -> Callable[[RefineKeyframe], KeyframeImage]:
+    """``load(keyframe)`` for :class:`KeyframeRefiner`: frame ``keyframe.frame_index`` of ``frames`` (a sequence's
+    or a frame cache's ``__getitem__``) with its images on ``device``."""
+
+    def load(keyframe: RefineKeyframe) -> KeyframeImage:
+        frame = frames(keyframe.frame_index)
+        return KeyframeImage(frame.color.to(device), frame.depth.to(device), frame.intrinsics)
+
+    return load
 
 
 class KeyframeRefiner:
