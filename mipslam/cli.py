@@ -79,24 +79,24 @@ def _mode_list(text: str) -> tuple[str, ...]:
     return values
 
 
-def _positive_float(text: str) -> float:
+def _finite_float(text: str, *, zero_allowed: bool) -> float:
+    """A finite number > 0 (>= 0 with ``zero_allowed``) from an argument, or the argparse error that says so."""
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (value > 0 and value != float("inf")):
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    if not ((value >= 0 if zero_allowed else value > 0) and value != float("inf")):
+        raise argparse.ArgumentTypeError(f"expected {'a number >= 0' if zero_allowed else 'a positive number'}, "
+                                         f"got {text!r}")
     return value
+
+
+def _positive_float(text: str) -> float:
+    return _finite_float(text, zero_allowed=False)
 
 
 def _non_negative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (value >= 0 and value != float("inf")):
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
-    return value
+    return _finite_float(text, zero_allowed=True)
 
 
 def _non_negative_int(text: str) -> int:
