@@ -128,6 +128,30 @@ static inline __attribute__((always_inline)) void vertical_blur(const float* con
     }
 }
 
+// Blurs every vector of one output row vertically (UNROLL vectors at a time, then the rest one by one) and hands
+// each to fn(v, acc), acc[q] the blurred quantity q of vector v.
+template <int Q, typename Fn>
+static inline __attribute__((always_inline)) void blur_row_vectors(const Geometry& G, const float* const* rows,
+                                                                   const vf* w, int n, Fn&& fn) {
+    int64_t v = 0;
+    for (; v + UNROLL <= G.vecs; v += UNROLL) {
+        vf acc[Q][UNROLL];
+        vertical_blur<Q, UNROLL>(rows, w, n, G.span, v * LANES, acc);
+        for (int u = 0; u < UNROLL; ++u) {
+            vf column[Q];
+            for (int q = 0; q < Q; ++q) column[q] = acc[q][u];
+            fn(v + u, column);
+        }
+    }
+    if (v < G.vecs) {
+        vf acc[Q][1];
+        vertical_blur<Q, 1>(rows, w, n, G.span, v * LANES, acc);
+        vf column[Q];
+        for (int q = 0; q < Q; ++q) column[q] = acc[q][0];
+        fn(v, column);
+    }
+}
+
 // A ring of `taps` horizontally blurred rows of Q quantities: row i's quantity q at at(i, q) (span floats).
 struct Ring {
     float* base;
@@ -203,21 +227,10 @@ static void moments_band(const Geometry& G, const float* target, int64_t r0, int
         }
         const int n = G.vertical_taps(j, &first, w);
         for (int k = 0; k < n; ++k) rows[k] = ring.at(first + k, 0);
-        int64_t v = 0;
-        for (; v + UNROLL <= G.vecs; v += UNROLL) {
-            vf acc[2][UNROLL];
-            vertical_blur<2, UNROLL>(rows, w, n, G.span, v * LANES, acc);
-            for (int u = 0; u < UNROLL; ++u) {
-                store_row(G, moments + j * G.row, v + u, acc[0][u]);
-                store_row(G, moments + plane + j * G.row, v + u, acc[1][u]);
-            }
-        }
-        if (v < G.vecs) {
-            vf acc[2][1];
-            vertical_blur<2, 1>(rows, w, n, G.span, v * LANES, acc);
-            store_row(G, moments + j * G.row, v, acc[0][0]);
-            store_row(G, moments + plane + j * G.row, v, acc[1][0]);
-        }
+        blur_row_vectors<2>(G, rows, w, n, [&](int64_t v, const vf* acc) __attribute__((always_inline)) {
+            store_row(G, moments + j * G.row, v, acc[0]);
+            store_row(G, moments + plane + j * G.row, v, acc[1]);
+        });
     }
 }
 
@@ -307,17 +320,9 @@ static void ssim_band(const Geometry& G, const float* image, const float* target
                     store(s.pc + G.margin + o, C);
                 }
             };
-            int64_t v = 0;
-            for (; v + UNROLL <= G.vecs; v += UNROLL) {
-                vf acc[3][UNROLL];
-                vertical_blur<3, UNROLL>(rows, w, n, G.span, v * LANES, acc);
-                for (int u = 0; u < UNROLL; ++u) score(v + u, acc[0][u], acc[1][u], acc[2][u]);
-            }
-            if (v < G.vecs) {
-                vf acc[3][1];
-                vertical_blur<3, 1>(rows, w, n, G.span, v * LANES, acc);
-                score(v, acc[0][0], acc[1][0], acc[2][0]);
-            }
+            blur_row_vectors<3>(G, rows, w, n, [&](int64_t v, const vf* acc) __attribute__((always_inline)) {
+                score(v, acc[0], acc[1], acc[2]);
+            });
             if (j >= r0 && j < r1) {
                 double total = 0.0;
                 for (int l = 0; l < LANES; ++l) total += (double)sum[l];
@@ -344,17 +349,9 @@ static void ssim_band(const Geometry& G, const float* image, const float* target
         auto combine = [&](int64_t v, vf a, vf b, vf c) __attribute__((always_inline)) {
             store_row(G, grad_row, v, a + two * load_row(G, x_row, v) * b + load_row(G, y_row, v) * c);
         };
-        int64_t v = 0;
-        for (; v + UNROLL <= G.vecs; v += UNROLL) {
-            vf acc[3][UNROLL];
-            vertical_blur<3, UNROLL>(rows, w, n, G.span, v * LANES, acc);
-            for (int u = 0; u < UNROLL; ++u) combine(v + u, acc[0][u], acc[1][u], acc[2][u]);
-        }
-        if (v < G.vecs) {
-            vf acc[3][1];
-            vertical_blur<3, 1>(rows, w, n, G.span, v * LANES, acc);
-            combine(v, acc[0][0], acc[1][0], acc[2][0]);
-        }
+        blur_row_vectors<3>(G, rows, w, n, [&](int64_t v, const vf* acc) __attribute__((always_inline)) {
+            combine(v, acc[0], acc[1], acc[2]);
+        });
     }
     (void)s1;
 }
