@@ -198,7 +198,7 @@ class MappingConfig:
     lr_poses: float = 1e-4  # Adam rate of the window's keyframe poses (m, rad per step; 0 = fixed)
     lambda_freq: float = 0.0  # weight of the frequency-domain loss (0 = off; the presets use 1000)
     # What the frequency loss may move while frames are tracked: "always" the geometry and poses too; "final"
-    # the colours alone (a real camera's detail is not all geometry; the final refinement moves the rest)
+    # the colours alone (a real camera's detail is not all geometry). The final refinement has no frequency term.
     freq_moves_geometry: Literal["final", "always"] = "always"
 
     def __post_init__(self):
