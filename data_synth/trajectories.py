@@ -1,7 +1,7 @@
 """Named camera trajectories inside the procedural room (camera-to-world, OpenCV camera axes).
 
-All trajectories keep handheld speeds whatever the number of frames: about 2 cm and at most
-about 2 degrees per frame (checked by the tests for few and many frames). Where a trajectory
+All trajectories but ``spin`` keep handheld speeds whatever the number of frames: about 2 cm and at
+most about 2 degrees per frame (checked by the tests for few and many frames). Where a trajectory
 cannot complete its full motion at that speed in the frames given, its extent shrinks instead
 (a smaller circle, a narrower look-around, a shorter dolly). They stay in the camera corridor
 that :func:`data_synth.scene.make_scene` keeps free of objects (within 1 m of the room's vertical
@@ -21,6 +21,13 @@ surface (the zoom's nearest point; elsewhere 0.5 m or more).
 - ``line``: constant-velocity translation of 2 cm per frame (at most 2 m) parallel to the +x wall,
   facing it from 1.6 m, fixed orientation.
 - ``static``: the camera at rest (the middle of ``line``), every frame identical.
+- ``spin``: a fast turn at the start and the end over the +x wall's repeated textures (blinds, checker
+  ladder, fine chart), the failure case of a tracker whose map is one keyframe: from the room's centre the
+  camera turns ``SPIN_DEG_PER_FRAME`` (9 degrees) a frame for the first and the last ``SPIN_FRAMES``
+  frames (a tenth of the sequence, at least 2), sweeping ``yaw`` from ``-S/2`` to ``+S/2`` (S the spin's
+  angle), and between the two spins turns back from ``+S/2`` to ``-S/2`` at handheld speed (a cosine
+  profile, at most about 2 degrees a frame for 60 frames or more), so the end spin crosses what the
+  start spin saw and the map now holds. The position drifts on a 5 cm circle (under 1 cm a frame).
 
 A recorded trajectory replays instead (:func:`replay_poses`): a TUM file (``timestamp tx ty tz qx qy
 qz qw``, camera-to-world, e.g. a TUM RGB-D ground truth) sampled at the sequence's frame rate, its
@@ -44,7 +51,7 @@ import torch
 from data_synth.scene import ROOM_MAX, ROOM_MIN
 from mipslam.errors import ConfigError, DatasetError
 
-TRAJECTORIES = ("loop", "zoom", "line", "static")
+TRAJECTORIES = ("loop", "zoom", "line", "static", "spin")
 
 STEP_M = 0.02  # nominal translation per frame
 MAX_STEP_M = 0.03  # never exceeded
@@ -58,6 +65,10 @@ WALL_VIEW_DISTANCE_M = 1.6  # line and static
 LINE_MAX_LENGTH_M = 2.0
 CORRIDOR_RADIUS_M = 1.0  # a replayed path stays within this horizontal distance of the room's axis ...
 CORRIDOR_HEIGHT_M = (0.5, 2.1)  # ... and between these heights (0.5 m from floor and ceiling)
+SPIN_DEG_PER_FRAME = 9.0
+SPIN_SHARE = 0.1  # of the frames, each of the two spins
+SPIN_MIN_FRAMES = 20  # two spins of 2 frames and a way back
+SPIN_CIRCLE_M = 0.05
 REPLAY_MAX_GAP_S = 0.1  # a sample time between two recorded poses further apart is refused (tracking dropout)
 REPLAY_TIME_TOLERANCE_S = 1e-5
 
@@ -152,6 +163,23 @@ def _static(frames: int) -> np.ndarray:
     return np.repeat(_line(1), frames, axis=0)
 
 
+def _spin(frames: int) -> np.ndarray:
+    spin = max(2, int(round(SPIN_SHARE * frames)))
+    back = frames - 1 - 2 * spin  # frame intervals of the way back
+    half = math.radians(SPIN_DEG_PER_FRAME) * spin / 2
+    i = np.arange(frames, dtype=np.float64)
+    s = np.clip((i - spin) / back, 0.0, 1.0)  # 0 .. 1 along the way back
+    yaw = np.where(i <= spin, -half + 2 * half * i / spin,
+                   np.where(i < frames - 1 - spin, half * np.cos(math.pi * s),
+                            -half + 2 * half * (i - (frames - 1 - spin)) / spin))
+    angle = 2 * math.pi * i / (frames - 1)
+    centre = 0.5 * (np.asarray(ROOM_MIN) + np.asarray(ROOM_MAX))
+    position = np.stack([centre[0] + SPIN_CIRCLE_M * np.cos(angle), centre[1] + SPIN_CIRCLE_M * np.sin(angle),
+                         np.full(frames, LOOP_HEIGHT_M)], -1)
+    pitch = math.radians(-3.0) + math.radians(2.0) * np.sin(angle)
+    return camera_poses(position, yaw, pitch, np.zeros(frames))
+
+
 def trajectory_poses(name: str, frames: int, *, laps: int = 1) -> np.ndarray:
     """Camera-to-world poses of trajectory ``name`` (one of :data:`TRAJECTORIES`).
 
@@ -172,6 +200,10 @@ def trajectory_poses(name: str, frames: int, *, laps: int = 1) -> np.ndarray:
     if laps != 1 and name != "loop":
         raise ConfigError(f"laps={laps} applies only to the 'loop' trajectory, not '{name}'")
     frames = int(frames)
+    if name == "spin" and frames < SPIN_MIN_FRAMES:
+        raise ConfigError(f"the spin trajectory needs at least {SPIN_MIN_FRAMES} frames, got {frames}")
+    if name == "spin":
+        return _spin(frames)
     if name == "loop":
         return _loop(frames, int(laps))
     if name == "zoom":

@@ -204,7 +204,7 @@ def _build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--overwrite", action="store_true", help="replace an earlier synthetic sequence in --out")
     sy.add_argument("--format", choices=["replica", "tum"], default="replica", help="folder layout")
     sy.add_argument("--trajectory", default="loop",
-                    help="camera trajectory name (loop, zoom, line, static), or a TUM trajectory file to replay "
+                    help="camera trajectory name (loop, zoom, line, static, spin), or a TUM trajectory file to replay "
                          "at 30 frames/s (e.g. a TUM RGB-D groundtruth.txt; --frames 0: all of it)")
     sy.add_argument("--trajectory-start", type=float, default=0.0, metavar="S",
                     help="replayed file: seconds after its first pose of the first frame")

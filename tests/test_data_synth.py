@@ -75,13 +75,15 @@ def folders(tmp_path_factory) -> dict[str, Path]:
 
 # ----------------------------------------------------------------------------- trajectories
 def test_trajectory_names_and_argument_errors():
-    assert TRAJECTORIES == ("loop", "zoom", "line", "static")
+    assert TRAJECTORIES == ("loop", "zoom", "line", "static", "spin")
     with pytest.raises(ConfigError, match="did you mean 'zoom'"):
         trajectory_poses("zom", 10)
     with pytest.raises(ConfigError, match="laps"):
         trajectory_poses("line", 10, laps=2)
     with pytest.raises(ConfigError, match="frames"):
         trajectory_poses("loop", 0)
+    with pytest.raises(ConfigError, match="at least 20 frames"):
+        trajectory_poses("spin", 19)
 
 
 @pytest.mark.parametrize("frames,laps", [(12, 1), (100, 1), (301, 1), (101, 2), (721, 3)])
@@ -108,6 +110,8 @@ def test_loop_with_enough_frames_turns_all_the_way_round():
 @pytest.mark.parametrize("name", TRAJECTORIES)
 @pytest.mark.parametrize("frames", [12, 100, 500])
 def test_trajectories_have_handheld_speeds_and_stay_clear_of_surfaces(name, frames):
+    if name == "spin" and frames < 20:
+        frames = 20  # the spin's shortest
     poses = trajectory_poses(name, frames)
     R = poses[:, :3, :3]
     assert np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max() < 1e-12
@@ -115,8 +119,13 @@ def test_trajectories_have_handheld_speeds_and_stay_clear_of_surfaces(name, fram
     assert np.array_equal(poses[:, 3], np.tile([0.0, 0.0, 0.0, 1.0], (frames, 1)))
     translation, rotation = _step_sizes(poses)
     assert translation.max() <= 0.0301
-    assert rotation.max() <= 2.0
-    if name != "static":
+    if name == "spin":  # 9 degrees a frame in its two spins, handheld speed on the way back between them
+        spin = max(2, round(0.1 * frames))
+        assert np.allclose(rotation[:spin], 9.0, atol=0.05) and np.allclose(rotation[-spin:], 9.0, atol=0.05)
+        rotation = rotation[spin:-spin]
+        assert rotation.max() <= (2.0 if frames >= 60 else 3.0)
+    assert rotation.max() <= 2.0 or name == "spin"
+    if name not in ("static", "spin"):  # the spin turns on the spot (a 5 cm circle)
         assert translation.mean() >= 0.003  # it does move
     for seed in (0, 1, 2, 3):
         clearance = make_scene(seed).clearance(poses[:, :3, 3])
