@@ -19,6 +19,15 @@ no keyframe has mapped, which covisibility with the last keyframe alone misses w
 drifts slowly away from it). A frame without any valid depth never becomes a keyframe (nothing
 to map).
 
+Revisits (:func:`covering_keyframe`): a frame whose view an old keyframe already holds adds none. Old: made
+at least ``revisit_min_age`` frames ago and outside the mapping window. When only the last-keyframe criteria
+fire (covisibility, translation, rotation; not coverage: the map lacks surfaces there), the
+``revisit_candidates`` old keyframes nearest in pose (translation over the frame's median depth plus rotation
+over ``rotation_deg``) within the translation and rotation bounds are tested; the first whose covisibility
+reaches ``covisibility_threshold`` covers the frame, which then is no keyframe. On laps of one room the
+keyframes stop growing once it is covered; a camera swaying back and forth over one place (fr1_rpy) keeps
+making the keyframes its map needs (docs/tracking.md, "Keyframes").
+
 Window: newest first; the newest ``keep_newest`` always stay, older ones leave when their
 overlap with the new keyframe falls below ``min_overlap`` and, beyond ``window_size``, the least
 overlapping (then the oldest) leave first (the MonoGS policy, with our covisibility).
@@ -29,7 +38,7 @@ The functions above are pure. The stage's steps in the frame loop apply them to 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Mapping, Sequence
 
 import torch
@@ -61,6 +70,11 @@ class KeyframeOptions:
     covisibility_depth_tolerance: float = 0.1
     covisibility_pixel_stride: int = 4
     window_min_overlap: float = 0.05  # window keyframes seeing less of the new keyframe than this leave
+    # Old keyframes nearest in pose tested for covering a frame the last keyframe's rule makes one (0: off), and
+    # how many frames old a keyframe must be to count (10 s at 30 Hz: fr1_rpy sways over one place for 300 frames
+    # and loses 0.3 cm of ATE when its keyframes of a few seconds before stand in for new ones).
+    revisit_candidates: int = 3
+    revisit_min_age: int = 300
 
     @classmethod
     def from_config(cls, section: KeyframeConfig) -> "KeyframeOptions":
@@ -123,6 +137,8 @@ class KeyframeDecision:
 
     reasons: the criteria that fired, a subset of ("first", "covisibility", "translation",
     "rotation", "coverage"); ("no_valid_depth",) when the frame cannot be a keyframe.
+    covered_by: the older keyframe whose view holds the frame's (no keyframe although the last keyframe's
+    criteria fired; :func:`covering_keyframe`), -1 otherwise.
     """
 
     is_keyframe: bool
@@ -132,6 +148,7 @@ class KeyframeDecision:
     translation_ratio: float  # translation / median scene depth
     rotation_deg: float
     median_depth_m: float
+    covered_by: int = -1
 
 
 def decide_keyframe(
@@ -257,8 +274,64 @@ def keyframe_decision(config: KeyframeOptions, state: "SLAMState", frames: "Fram
         return decide_keyframe(config, frame.depth, T_wc, frame.intrinsics.matrix(), None, None, None)
     record = state.keyframe_record(last)
     keyframe = frames[record.index]
-    return decide_keyframe(config, frame.depth, T_wc, frame.intrinsics.matrix(), keyframe.depth, record.T_wc,
-                           keyframe.intrinsics.matrix(), map_coverage)
+    decision = decide_keyframe(config, frame.depth, T_wc, frame.intrinsics.matrix(), keyframe.depth, record.T_wc,
+                               keyframe.intrinsics.matrix(), map_coverage)
+    if not decision.is_keyframe or not set(decision.reasons) <= REVISIT_REASONS:
+        return decision
+    covering = covering_keyframe(config, state, frames, frame, T_wc, decision.median_depth_m)
+    if covering < 0:
+        return decision
+    return replace(decision, is_keyframe=False, reasons=(), covered_by=covering)
+
+
+# The last keyframe's criteria an older keyframe's view can answer (coverage: the map lacks the surfaces)
+REVISIT_REASONS = frozenset({"covisibility", "translation", "rotation"})
+
+
+def nearest_keyframes(keyframe_T_wc: torch.Tensor, T_wc: torch.Tensor, median_depth_m: float,
+                      config: KeyframeOptions, count: int) -> list[int]:
+    """Up to ``count`` keyframe ids, nearest first, whose pose is within the keyframe rule's translation
+    (``translation_ratio * median_depth_m``) and rotation (``rotation_deg``) of ``T_wc`` [4, 4].
+    Distance: translation / median depth / translation_ratio + rotation / rotation_deg.
+    keyframe_T_wc [K, 4, 4] camera-to-world."""
+    if count <= 0 or len(keyframe_T_wc) == 0 or not median_depth_m > 0:
+        return []
+    T_wc = T_wc.to(torch.float64)
+    poses = keyframe_T_wc.to(torch.float64)
+    translation = (poses[:, :3, 3] - T_wc[:3, 3]).norm(dim=1) / (median_depth_m * config.translation_ratio)
+    relative = poses[:, :3, :3].transpose(1, 2) @ T_wc[:3, :3]  # [K, 3, 3]
+    trace = relative.diagonal(dim1=1, dim2=2).sum(-1)
+    rotation = torch.rad2deg(torch.arccos(((trace - 1) / 2).clamp(-1.0, 1.0))) / config.rotation_deg
+    near = (translation <= 1.0) & (rotation <= 1.0)
+    distance = torch.where(near, translation + rotation, torch.inf)
+    order = torch.argsort(distance)[:count]
+    return [int(k) for k in order if bool(near[k])]
+
+
+def covering_keyframe(config: KeyframeOptions, state: "SLAMState", frames: "FrameCache", frame: "Frame",
+                      T_wc: torch.Tensor, median_depth_m: float) -> int:
+    """The old keyframe (module docstring) whose view holds ``frame`` at ``T_wc`` [4, 4]: of the
+    ``revisit_candidates`` nearest in pose (:func:`nearest_keyframes`), the first whose covisibility reaches
+    ``covisibility_threshold``; -1 when none does."""
+    if config.revisit_candidates <= 0 or not state.keyframe_frames:
+        return -1
+    window, newest = set(state.window), len(state.frames) - config.revisit_min_age
+    outside = [k for k, position in enumerate(state.keyframe_frames) if position <= newest and k not in window]
+    if not outside:
+        return -1
+    if not median_depth_m > 0:
+        median_depth_m = median_valid_depth(frame.depth)
+    poses = state.keyframe_poses()[outside]
+    for nearest in nearest_keyframes(poses, T_wc, median_depth_m, config, config.revisit_candidates):
+        kf = outside[nearest]
+        record = state.keyframe_record(kf)
+        keyframe = frames[record.index]
+        covis = covisibility(frame.depth, T_wc, frame.intrinsics.matrix(), keyframe.depth, record.T_wc,
+                             keyframe.intrinsics.matrix(), depth_tolerance=config.covisibility_depth_tolerance,
+                             pixel_stride=config.covisibility_pixel_stride)
+        if covis >= config.covisibility_threshold:
+            return kf
+    return -1
 
 
 def insert_keyframe(config: KeyframeOptions, state: "SLAMState", frames: "FrameCache",

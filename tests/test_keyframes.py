@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -153,3 +154,79 @@ def test_a_view_the_map_covers_too_little_is_a_keyframe_even_at_full_covisibilit
     assert not unknown.is_keyframe
     off = decide_keyframe(KeyframeOptions(), wall(), pose(), K, wall(), pose(), map_coverage=0.1)  # default 0: off
     assert not off.is_keyframe
+
+
+class _Intrinsics:
+    def matrix(self):
+        return K
+
+
+class _Keyframes:
+    """The part of SLAMState and FrameCache that the keyframe step reads: keyframes at ``poses`` [4, 4] each,
+    every one seeing the wall 2 m ahead."""
+
+    def __init__(self, poses):
+        from types import SimpleNamespace
+
+        self.records = [SimpleNamespace(index=k, T_wc=p) for k, p in enumerate(poses)]
+        self.keyframe_frames = list(range(len(poses)))
+        self.window = [len(poses) - 1]  # the mapping window: the last keyframe
+        self.frames = [None] * (KeyframeOptions.revisit_min_age + len(poses))  # every keyframe old enough
+
+    def last_keyframe_id(self):
+        return len(self.records) - 1
+
+    def keyframe_record(self, k):
+        return self.records[k]
+
+    def keyframe_poses(self):
+        return torch.stack([r.T_wc for r in self.records])
+
+    def __getitem__(self, index):
+        from types import SimpleNamespace
+
+        return SimpleNamespace(depth=wall(), intrinsics=_Intrinsics())
+
+
+def test_nearest_keyframes_within_the_rule_bounds_nearest_first():
+    from mipslam.keyframes import nearest_keyframes
+
+    config = KeyframeOptions(translation_ratio=0.1, rotation_deg=15.0)
+    poses = torch.stack([pose(tx=0.15), pose(), pose(tx=0.05), pose(rz=math.radians(20)), pose(tx=0.5)])
+    # median depth 2 m: translation bound 0.2 m; 20 degrees and 0.5 m are outside
+    assert nearest_keyframes(poses, pose(tx=0.04), 2.0, config, 5) == [2, 1, 0]
+    assert nearest_keyframes(poses, pose(tx=0.04), 2.0, config, 1) == [2]
+    assert nearest_keyframes(poses, pose(tx=0.04), 2.0, config, 0) == []
+    assert nearest_keyframes(poses, pose(tx=0.04), math.nan, config, 3) == []
+
+
+def test_a_revisit_that_an_older_keyframe_covers_adds_no_keyframe():
+    from mipslam.keyframes import keyframe_decision
+    from types import SimpleNamespace
+
+    config = KeyframeOptions(covisibility_threshold=0.9, translation_ratio=0.1, rotation_deg=15.0)
+    # keyframe 0 at the origin, keyframe 1 (the last, the window) 0.6 m to the side: back at the origin the last
+    # keyframe's rule fires (translation, covisibility) but keyframe 0 holds the view
+    keyframes = _Keyframes([pose(), pose(tx=0.6)])
+    frame = SimpleNamespace(depth=wall(), intrinsics=_Intrinsics())
+    back = keyframe_decision(config, keyframes, keyframes, frame, pose(tx=0.01))
+    assert not back.is_keyframe and back.covered_by == 0 and back.reasons == ()
+    # a keyframe the mapping window still holds does not stand in: the camera swaying over the window's views
+    # adds keyframes there
+    keyframes.window = [1, 0]
+    sway = keyframe_decision(config, keyframes, keyframes, frame, pose(tx=0.01))
+    assert sway.is_keyframe and sway.covered_by == -1
+    keyframes.window = [1]
+    # nor does a recent one (the camera back within revisit_min_age frames)
+    young = keyframe_decision(replace(config, revisit_min_age=10**6), keyframes, keyframes, frame, pose(tx=0.01))
+    assert young.is_keyframe and young.covered_by == -1
+    # off: the last keyframe's rule alone decides
+    off = keyframe_decision(replace(config, revisit_candidates=0), keyframes, keyframes, frame, pose(tx=0.01))
+    assert off.is_keyframe and "translation" in off.reasons and off.covered_by == -1
+    # a new place is still a keyframe
+    new = keyframe_decision(config, keyframes, keyframes, frame, pose(tx=-0.6))
+    assert new.is_keyframe and new.covered_by == -1
+    # the map lacking surfaces there (coverage) makes a keyframe even where an older keyframe's pose is near
+    thin = keyframe_decision(replace(config, min_map_coverage=0.95), keyframes, keyframes, frame, pose(tx=0.01),
+                             map_coverage=0.5)
+    assert thin.is_keyframe and "coverage" in thin.reasons
