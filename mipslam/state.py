@@ -123,6 +123,7 @@ class TrackedPose(Protocol):
     loss: float
     iterations: int
     status: str
+    depth_disagreement: float  # fraction of the mapped pixels whose rendered depth disagrees (NaN: not measured)
 
 
 @dataclass
@@ -134,6 +135,7 @@ class SLAMState:
     keyframe_frames: list[int] = field(default_factory=list)  # keyframe id -> position in ``frames``
     window: list[int] = field(default_factory=list)  # keyframe ids, newest first
     running_loss: float | None = None
+    running_disagreement: float | None = None  # the same average of tracked frames' depth disagreement
     gaussian_counts: list[int] = field(default_factory=list)
     loop: LoopState = field(default_factory=LoopState.empty)
     loop_log: dict[str, list[dict[str, Any]]] = field(default_factory=lambda: {"candidates": [], "optimisations": []})
@@ -236,10 +238,15 @@ class SLAMState:
         return record
 
     def end_frame(self, tracked: TrackedPose, running_loss_momentum: float) -> FrameRecord:
-        """After all stages: a well-tracked frame updates the running tracking loss
-        (:func:`update_running_loss`), and the map's size is recorded. Returns the frame's record."""
+        """After all stages: a well-tracked frame updates the running tracking loss (:func:`update_running_loss`),
+        a tracked frame (well or flagged for its depth disagreement, so that the level follows a scene whose depth
+        agrees less everywhere) the running depth disagreement, and the map's size is recorded. Returns the
+        frame's record."""
         if tracked.status == "ok":
             self.running_loss = update_running_loss(self.running_loss, tracked.loss, running_loss_momentum)
+        if tracked.status in ("ok", "depth_disagreement") and math.isfinite(tracked.depth_disagreement):
+            self.running_disagreement = update_running_loss(self.running_disagreement, tracked.depth_disagreement,
+                                                            running_loss_momentum)
         self.gaussian_counts.append(len(self.gaussian_map))
         return self.frames[-1]
 
@@ -271,6 +278,7 @@ class SLAMState:
             "next_frame": self.next_frame,
             "statuses": [f.status for f in frames],
             "running_loss": self.running_loss,
+            "running_disagreement": self.running_disagreement,
             "gaussian_counts": self.gaussian_counts,
             "rng": rng_meta,
             "loop_log": self.loop_log,
@@ -308,11 +316,13 @@ class SLAMState:
             for i in range(len(statuses))
         ]
         running = metadata["running_loss"]
+        disagreement = metadata.get("running_disagreement")  # absent from checkpoints of earlier versions
         return cls(
             gaussian_map=gmap, optimizer=optimizer, generator=generator, frames=frames,
             keyframe_frames=[int(v) for v in tensors["keyframe_frames"].tolist()],
             window=[int(v) for v in tensors["window"].tolist()],
             running_loss=None if running is None else float(running),
+            running_disagreement=None if disagreement is None else float(disagreement),
             gaussian_counts=[int(v) for v in metadata["gaussian_counts"]],
             loop=LoopState.from_state_dict(select_prefix("loop", tensors)),
             loop_log={"candidates": list(metadata["loop_log"]["candidates"]),

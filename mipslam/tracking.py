@@ -61,9 +61,12 @@ class TrackingResult:
     iterations:     tracking-loss renders over all levels plus the direct alignment's Gauss-Newton steps
     valid_fraction: fraction of pixels in the depth term at the finest level
     ok:             False when tracking failed (the frame is flagged and not mapped)
-    status:         "ok", "initial", "non_finite_loss", "too_few_valid_pixels" or "loss_jump"
+    status:         "ok", "initial", "non_finite_loss", "too_few_valid_pixels", "loss_jump" or
+                    "depth_disagreement" (:func:`verify_pose`; the frame keeps the tracked pose, flagged)
     map_coverage:   fraction of the frame's valid-depth pixels (finest level) where the map renders a surface
                     (opacity >= TrackingOptions.coverage_opacity) at the returned pose; NaN when not rendered
+    depth_disagreement: fraction of those covered pixels whose rendered depth D / A differs from the measured
+                    depth by more than TrackingOptions.disagreement_tolerance of it; NaN when not rendered
     """
 
     T_wc: torch.Tensor
@@ -74,6 +77,7 @@ class TrackingResult:
     ok: bool
     status: str
     map_coverage: float = math.nan
+    depth_disagreement: float = math.nan
 
 
 def constant_velocity_prediction(T_wc_prev: torch.Tensor, T_wc_prev_tracked: torch.Tensor,
@@ -103,12 +107,13 @@ class _Level:
 
 @dataclass(frozen=True)
 class _Seen:
-    """A render at tracking's finest level: its loss, depth-term pixels, covered pixels and pose [4, 4]
-    float64 world-to-camera."""
+    """A render at tracking's finest level: its loss, depth-term pixels, covered pixels, covered pixels whose depth
+    disagrees (:meth:`Tracker._disagreeing_pixels`) and pose [4, 4] float64 world-to-camera."""
 
     loss: float
     depth_pixels: int
     covered: int
+    disagreeing: int
     T_cw: torch.Tensor
 
 
@@ -128,11 +133,12 @@ class _StartView:
 
 @dataclass(frozen=True)
 class _StepRender:
-    """A gradient step's render (:meth:`Tracker._step_render`): its loss, opacity [h, w] (no gradient), and
-    ``backward()``, which sets the pose parameters' (and the exposure's) ``.grad``."""
+    """A gradient step's render (:meth:`Tracker._step_render`): its loss, opacity and depth [h, w] (no gradient),
+    and ``backward()``, which sets the pose parameters' (and the exposure's) ``.grad``."""
 
     loss: RGBDLoss
     alpha: torch.Tensor
+    depth: torch.Tensor
     backward: Callable[[], None]
 
 
@@ -191,6 +197,21 @@ class TrackingOptions:
     start_margin: float = 0.1
     min_valid_fraction: float = 0.05
     failure_loss_ratio: float = 5.0  # loss above ratio * running level = failure
+    # Geometric check of a tracked pose (verify_pose): a covered pixel disagrees when its rendered depth D / A is
+    # off the measured depth by more than this fraction of it; a frame is checked when the fraction of disagreeing
+    # pixels exceeds both disagreement_floor and disagreement_ratio times its running level (repeated texture
+    # aligned one period off, where the photometric loss hardly rises; docs/tracking.md, "Failure").
+    disagreement_tolerance: float = 0.1
+    disagreement_floor: float = 0.015
+    disagreement_ratio: float = 4.0
+    # The checked frame's wider search runs the direct alignment over this many more pyramid levels (each halves
+    # the image: a 9 degree turn is 36 pixels at 320x240, 4.5 at a 40x30 top level). Not always on: on fr1_rpy
+    # two more levels everywhere cost ATE (1.39 -> 1.51 cm, fast; docs/tracking.md, "Failure").
+    wide_search_levels: int = 2
+    # A tracked pose this far from the motion model's prediction (a sudden turn or jolt: fr1_rpy's largest is
+    # 2.8 degrees / 5.3 cm, a fast spin's onset 9 degrees) is checked by the same wider search.
+    motion_check_deg: float = 4.0
+    motion_check_m: float = 0.08
     # Largest jump relocalisation accepts from the RGB-D alignment to the previous frame (a bump, dropped frames).
     relocalise_max_m: float = 1.0
     relocalise_max_deg: float = 45.0
@@ -367,7 +388,8 @@ class Tracker:
             value = float(loss.total)
             if not math.isfinite(value) or (best is not None and value >= best.loss):
                 return (T_cw if best is None else best.T_cw), best, steps
-            best = _Seen(value, loss.num_depth_pixels, self._covered_pixels(out.alpha, full), T_cw)
+            best = _Seen(value, loss.num_depth_pixels, self._covered_pixels(out.alpha, full),
+                         self._disagreeing_pixels(out.depth, out.alpha, full), T_cw)
             opaque = out.alpha >= max(cfg.opacity_threshold, 1e-3)
             # The depth as the gradient steps' loss reads it (the composited sum(T a z) unless
             # TrackingOptions.depth_normalise): where the two objectives disagree the steps undo the alignment
@@ -396,6 +418,14 @@ class Tracker:
         ``TrackingOptions.coverage_opacity``)."""
         return int(((alpha >= self.config.coverage_opacity) & level.target_masks.depth).sum())
 
+    def _disagreeing_pixels(self, depth: torch.Tensor, alpha: torch.Tensor, level: _Level) -> int:
+        """Covered pixels (:meth:`_covered_pixels`) where the render's depth ``depth`` / ``alpha`` ([h, w] each,
+        metres) is off ``level``'s measured depth by more than ``TrackingOptions.disagreement_tolerance`` of it."""
+        covered = (alpha >= self.config.coverage_opacity) & level.target_masks.depth
+        rendered = depth.detach() / alpha.detach().clamp_min(self.config.coverage_opacity)
+        off = (rendered - level.depth).abs() > self.config.disagreement_tolerance * level.depth
+        return int((covered & off).sum())
+
     def _step_render(self, gaussians: ActivatedGaussians, rho: torch.Tensor, phi: torch.Tensor, T_cw_init: torch.Tensor,
                      level: _Level, exposure: torch.Tensor | None) -> _StepRender:
         """A gradient step's render at ``exp([rho, phi]) T_cw_init`` ([3], [3] leaf tensors; [4, 4] float64
@@ -413,8 +443,8 @@ class Tracker:
         render = render_view_pose_only(gaussians, T_cw, level.intrinsics, self.render_config, mode=level.render_mode)
         if render is None:
             T_cw = se3_exp_times(rho, phi, T_cw_init, dtype)
-            loss, alpha = self._loss(gaussians, T_cw, level, exposure)
-            return _StepRender(loss, alpha, loss.total.backward)
+            loss, alpha, depth = self._loss(gaussians, T_cw, level, exposure)
+            return _StepRender(loss, alpha, depth, loss.total.backward)
         affine = None if exposure is None else tuple(exposure.detach().unbind())
         loss, gradients = rgbd_loss_and_gradients(self.render_config.backend, render.color, render.depth, level.color,
                                                   level.depth, exposure=affine, **self._loss_terms(render.alpha, level))
@@ -424,13 +454,14 @@ class Tracker:
             if exposure is not None:
                 exposure.grad = torch.stack([gradients.log_gain, gradients.bias])
 
-        return _StepRender(loss, render.alpha, backward)
+        return _StepRender(loss, render.alpha, render.depth, backward)
 
     def _loss(self, gaussians: ActivatedGaussians, T_cw: torch.Tensor, level: _Level, exposure: torch.Tensor | None):
-        """The loss of the map rendered at ``T_cw`` [4, 4] against ``level``, and the render's opacity [h, w]."""
+        """The loss of the map rendered at ``T_cw`` [4, 4] against ``level``, and the render's opacity and depth
+        [h, w] (detached)."""
         out = render_view(gaussians, T_cw, level.intrinsics, self.render_config, mode=level.render_mode,
                           pose_only=True)
-        return self._loss_of_render(out, level, exposure), out.alpha.detach()
+        return self._loss_of_render(out, level, exposure), out.alpha.detach(), out.depth.detach()
 
     def _loss_of_render(self, out: RenderOutput, level: _Level, exposure: torch.Tensor | None):
         """The tracking loss of the render ``out`` against ``level`` (differentiable where ``out`` is)."""
@@ -485,11 +516,12 @@ class Tracker:
         # The lowest full-resolution loss seen, its depth-pixel count, the valid-depth pixels the map renders there
         # (opacity >= coverage_opacity), and the pose (and exposure) it was seen at; the direct alignment's
         # renders count.
-        best_loss, best_depth_pixels, best_covered = math.inf, 0, 0
+        best_loss, best_depth_pixels, best_covered, best_disagreeing = math.inf, 0, 0, 0
         best_step, full_steps = 0, 0  # the finest level's step that gave the best pose (0: the alignment's render)
         best = (torch.zeros(6, dtype=dtype, device=device), None)
         if seen is not None:
             best_loss, best_depth_pixels, best_covered = seen.loss, seen.depth_pixels, seen.covered
+            best_disagreeing = seen.disagreeing
             xi_seen = se3_log(seen.T_cw @ se3_inverse(T_cw_init)).to(dtype)
             best = (xi_seen, None if exposure is None else torch.zeros_like(exposure.detach()))
         levels = self._levels(frame)
@@ -509,6 +541,7 @@ class Tracker:
                     best_loss, best_depth_pixels = float(loss.total.detach()), loss.num_depth_pixels
                     best_step = full_steps
                     best_covered = self._covered_pixels(alpha, level)
+                    best_disagreeing = self._disagreeing_pixels(step_render.depth, alpha, level)
                     best = (xi, None if exposure is None else exposure.detach().clone())
                 if level is full and i == level.iterations - 1:
                     iterations += 1
@@ -528,6 +561,7 @@ class Tracker:
         T_cw_best = se3_exp(xi_best.to(torch.float64)) @ T_cw_init
         valid_fraction = best_depth_pixels / max(1, full.depth.numel())
         map_coverage = best_covered / max(1, int(full.target_masks.depth.sum()))
+        disagreement = best_disagreeing / best_covered if best_covered else math.nan
         final_loss = best_loss
         if not math.isfinite(final_loss):
             return self._failed(T_wc_init, iterations, "non_finite_loss", math.nan, valid_fraction)
@@ -537,7 +571,8 @@ class Tracker:
             return self._failed(T_wc_init, iterations, "loss_jump", final_loss, valid_fraction)
         T_wc = se3_inverse(T_cw_best.detach().to(torch.float64).cpu())
         exposure_out = torch.zeros(2) if exposure_best is None else exposure_best.detach().float().cpu()
-        return TrackingResult(T_wc, exposure_out, final_loss, iterations, valid_fraction, True, "ok", map_coverage)
+        return TrackingResult(T_wc, exposure_out, final_loss, iterations, valid_fraction, True, "ok", map_coverage,
+                              disagreement)
 
     @torch.no_grad()
     def best_start(
@@ -714,6 +749,7 @@ def track_frame(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "Fra
     result = tracker.track(detached, frame, T_wc_start, state.running_loss)
     result = relocalise_keyframes(tracker, frontend, state, frame, frames, detached, result)
     result = relocalise(tracker, state, frame, frames, detached, result)
+    result = verify_pose(tracker, frontend, state, frame, frames, detached, result, prediction, T_wc_start)
     return replace(result, T_wc=nearest_rigid(result.T_wc))
 
 
@@ -772,6 +808,80 @@ def relocalise(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "Fram
                  "alignment to frame %d)", frame.index, result.loss, result.loss / running, retry.loss, previous.index)
         return retry
     return result
+
+
+def disagreement_limit(cfg: TrackingOptions, running: float | None) -> float:
+    """The depth disagreement above which a tracked pose is checked (:func:`verify_pose`): the larger of
+    ``disagreement_floor`` and ``disagreement_ratio`` times the running level of tracked frames; infinite before
+    the first (what is usual differs from camera to camera: 5 % of fr3_teddy's pixels, 0.1 % of a synthetic
+    room's)."""
+    if running is None:
+        return math.inf
+    return max(cfg.disagreement_floor, cfg.disagreement_ratio * running)
+
+
+def moved_from(T_wc: torch.Tensor, T_wc_other: torch.Tensor) -> tuple[float, float]:
+    """Translation (m) and rotation (degrees) between two poses [4, 4]."""
+    relative = se3_inverse(T_wc_other.to(torch.float64)) @ T_wc.to(torch.float64)
+    cos = float((relative[:3, :3].trace() - 1) / 2)
+    return float(relative[:3, 3].norm()), math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+
+
+def verify_pose(tracker: Tracker, frontend: Frontend | None, state: "SLAMState", frame: Frame, frames: "FrameCache",
+                gaussians: ActivatedGaussians, result: TrackingResult, prediction: torch.Tensor,
+                T_wc_start: torch.Tensor) -> TrackingResult:
+    """Check a tracked pose that the map's geometry or the motion disputes, by a wider search.
+
+    Checked: a pose at which more of the map's depth disagrees with the frame's
+    (``TrackingResult.depth_disagreement``) than :func:`disagreement_limit` allows, or one further from the motion
+    model's ``prediction`` [4, 4] than ``motion_check_m`` / ``motion_check_deg``. The wider search tracks again
+    with ``wide_search_levels`` more levels of direct alignment from the prediction, from tracking's start
+    ``T_wc_start`` [4, 4] and from the tracked pose, and from the features' match to the newest keyframes and
+    a dense RGB-D alignment to the newest tracked frame. Of the results within the disagreement limit the lowest
+    tracking loss wins; when none is within it, the frame keeps the pose of least disagreement and is flagged
+    ``depth_disagreement`` (not mapped, out of the running levels).
+
+    Photometric alignment over repeated texture (blinds, checkers) can settle a period or more away, where the
+    colour loss hardly rises: the depth of the surfaces around them does not follow (docs/tracking.md, "Failure").
+    """
+    cfg = tracker.config
+    if not result.ok:
+        return result
+    limit = disagreement_limit(cfg, state.running_disagreement)
+    moved_m, moved_deg = moved_from(result.T_wc, prediction)
+    disputed = result.depth_disagreement > limit  # NaN (nothing covered) is not
+    jolted = moved_m > cfg.motion_check_m or moved_deg > cfg.motion_check_deg
+    if not (disputed or jolted):
+        return result
+    wide = Tracker(replace(cfg, direct_levels=cfg.direct_levels + cfg.wide_search_levels), tracker.render_config)
+    starts = [prediction] + ([] if torch.equal(T_wc_start, prediction) else [T_wc_start]) + [result.T_wc]
+    retries = [(wide, start) for start in starts] if cfg.direct_iterations > 0 else []
+    if frontend is not None and state.keyframe_frames:
+        newest = [state.frames[p] for p in reversed(state.keyframe_frames)][: frontend.options.relocalise_keyframes]
+        matched = frontend.relocalise(frame, [(frames[r.index], r.T_wc) for r in newest], result.T_wc)
+        if matched is not None:
+            retries.append((tracker, matched.T_wc))
+    reference = state.newest_tracked_frame()
+    if reference is not None:
+        aligned = align_to_frame(cfg, frames[reference.index], reference.T_wc, frame, result.T_wc)
+        if aligned is not None:
+            retries.append((tracker, aligned))
+    results = [result] + [r for r in (retracker.track(gaussians, frame, start, state.running_loss)
+                                      for retracker, start in retries) if r.ok]
+    agreeing = [r for r in results if not r.depth_disagreement > limit]
+    if agreeing:
+        best = min(agreeing, key=lambda r: r.loss)
+        if best is not result:
+            log.info("frame %d: %s; a wider search moved it %.1f cm / %.1f deg (depth disagreement %.1f%% -> %.1f%%, "
+                     "loss %.4f -> %.4f)", frame.index,
+                     "tracked pose disputed by the map's depth" if disputed else "tracked pose far from the motion model's",
+                     100 * moved_from(best.T_wc, result.T_wc)[0], moved_from(best.T_wc, result.T_wc)[1],
+                     100 * result.depth_disagreement, 100 * best.depth_disagreement, result.loss, best.loss)
+        return best
+    best = min(results, key=lambda r: r.depth_disagreement)
+    log.info("frame %d: flagged: the map's depth disagrees on %.1f%% of the pixels at the best pose found "
+             "(limit %.1f%%); the frame is not mapped", frame.index, 100 * best.depth_disagreement, 100 * limit)
+    return replace(best, ok=False, status="depth_disagreement")
 
 
 def dense_start(cfg: TrackingOptions, state: "SLAMState", frame: Frame, frames: "FrameCache",

@@ -3,7 +3,9 @@ its code holds its constants, and one adapter (``section_options``) builds the o
 from __future__ import annotations
 
 import ast
+import math
 import dataclasses
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -99,6 +101,24 @@ def test_the_running_loss_momentum_is_trackings():
         state.frames.append(FrameRecord(0, 0.0, torch.eye(4), torch.zeros(2), "ok", 2.0, 1, -1, -1, torch.eye(4)))
         state.end_frame(_result(2.0), momentum)
         assert state.running_loss == pytest.approx(expected)
+
+
+def test_the_running_depth_disagreement_follows_tracked_frames_and_survives_a_checkpoint():
+    # ok and disagreement-flagged frames move the level (a scene whose depth agrees less everywhere must not stay
+    # flagged for good); other failures and unmeasured frames do not
+    state = SLAMState.initial(MappingOptions(), 0, torch.device("cpu"))
+    momentum = TrackingOptions().running_loss_momentum
+    for status, disagreement, expected in (("ok", 0.02, 0.02), ("depth_disagreement", 0.12, 0.9 * 0.02 + 0.1 * 0.12),
+                                           ("loss_jump", 0.5, 0.03), ("ok", math.nan, 0.03)):
+        state.frames.append(FrameRecord(0, 0.0, torch.eye(4), torch.zeros(2), status, 1.0, 1, -1, -1, torch.eye(4)))
+        state.end_frame(replace(_result(1.0), status=status, ok=status == "ok", depth_disagreement=disagreement),
+                        momentum)
+        assert state.running_disagreement == pytest.approx(expected)
+    tensors, metadata = state.to_checkpoint()
+    back = SLAMState.from_checkpoint(tensors, metadata, MappingOptions(), torch.device("cpu"))
+    assert back.running_disagreement == state.running_disagreement
+    del metadata["running_disagreement"]  # a checkpoint written before the level existed
+    assert SLAMState.from_checkpoint(tensors, metadata, MappingOptions(), torch.device("cpu")).running_disagreement is None
 
 
 @pytest.mark.parametrize("key,value", [("iterations", 0), ("resolution_scale", 0.0),

@@ -272,7 +272,9 @@ def test_dense_start_joins_the_candidates_where_the_features_give_none(one_frame
         state = SLAMState.initial(MappingOptions.from_config(config.mapping), 0, torch.device("cpu"))
         state.gaussian_map = gmap
         state.frames.append(FrameRecord(1, 0.0, T_wc_off, torch.zeros(2), "ok", 0.01, 4, -1, 0, T_wc_off))
-        settings = replace(TrackingOptions.from_config(config.tracking), iterations=4, dense_start=dense)
+        # the pose check off: its wider search would align to the previous frame again (test_verify_pose_*)
+        settings = replace(TrackingOptions.from_config(config.tracking), iterations=4, dense_start=dense,
+                           motion_check_m=math.inf, motion_check_deg=math.inf)
         result = tracking.track_frame(Tracker(settings, config.render), state, frame, {1: frame}, T_wc_true)
         errors[dense] = float(se3_log(se3_inverse(T_wc_true) @ result.T_wc)[:3].norm())
     assert len(asked) == 1  # only with dense_start, from the motion model's prediction (the reference's pose)
@@ -482,3 +484,65 @@ def test_pose_rprop_is_bit_equal_to_torch_rprop(dtype):
         optimizer.zero_grad(set_to_none=True)
         assert all(p.grad is None for p in ours)
     assert tracking._converged(optimizer, ours[:2], 1.0, 1e9) and not tracking._converged(optimizer, ours[:2], 0.0, 0.0)
+
+
+@pytest.fixture(scope="module")
+def spin_start(tmp_path_factory):
+    """A 160x120 data_synth spin (9 degrees a frame from frame 0 over repeated texture) and its frame 0's map."""
+    import data_synth
+
+    root = tmp_path_factory.mktemp("spin") / "seq"
+    data_synth.generate(root, layout="replica", trajectory="spin", width=160, height=120, frames=20, seed=2,
+                        supersample=1)
+    config, sequence, gmap, _, _ = map_of_first_frame(root, 60)
+    return config, sequence, gmap
+
+
+SYNTHETIC_DISAGREEMENT = 0.001  # the running depth disagreement of a data_synth room (exact depth)
+
+
+def _track_spin_frame(spin_start, **constants):
+    config, sequence, gmap = spin_start
+    state = SLAMState.initial(MappingOptions.from_config(config.mapping), 0, torch.device("cpu"))
+    state.gaussian_map = gmap
+    state.running_disagreement = SYNTHETIC_DISAGREEMENT
+    T_wc_0 = sequence.gt_T_wc[0].to(torch.float64)
+    state.frames.append(FrameRecord(0, 0.0, T_wc_0, torch.zeros(2), "initial", 0.0, 0, 0, -1, T_wc_0))
+    state.keyframe_frames.append(0)
+    settings = replace(TrackingOptions.from_config(config.tracking), dense_start=False, **constants)
+    frames = {0: sequence[0]}
+    result = tracking.track_frame(Tracker(settings, config.render), state, sequence[1], frames, T_wc_0)
+    error = se3_inverse(sequence.gt_T_wc[1].to(torch.float64)) @ result.T_wc
+    return result, float(error[:3, 3].norm())
+
+
+def test_verify_pose_searches_again_where_the_maps_depth_disputes_the_pose(spin_start):
+    # Frame 1 is 9 degrees from frame 0; the motion model (no motion yet) starts at frame 0's pose. With one
+    # pyramid level of direct alignment and 4 steps tracking stops where part of the map's depth disagrees with
+    # the frame; the pose check searches again (two more levels) and lands where the depth agrees, nearer the truth.
+    weak = dict(direct_levels=1, iterations=4)
+    off = dict(disagreement_floor=math.inf, motion_check_m=math.inf, motion_check_deg=math.inf)
+    limit = tracking.disagreement_limit(TrackingOptions(), SYNTHETIC_DISAGREEMENT)
+    unchecked, unchecked_error = _track_spin_frame(spin_start, **weak, **off)
+    checked, checked_error = _track_spin_frame(spin_start, **weak)
+    assert unchecked.ok and unchecked.depth_disagreement > limit  # silently ok without the check
+    assert checked.ok and checked.depth_disagreement <= limit
+    assert checked_error < 0.7 * unchecked_error, (checked_error, unchecked_error)
+
+
+def test_verify_pose_flags_a_pose_it_cannot_resolve(spin_start):
+    # A limit no pose can meet (every covered pixel disagrees at a tolerance of 1e-6 of the depth): the frame
+    # keeps its best pose and is flagged, never silently ok.
+    result, _ = _track_spin_frame(spin_start, disagreement_tolerance=1e-6, disagreement_floor=0.05,
+                                  disagreement_ratio=0.0)
+    assert not result.ok and result.status == "depth_disagreement"
+    assert torch.isfinite(result.T_wc).all()
+
+
+def test_no_disagreement_check_before_the_camera_has_a_level():
+    # What share of the pixels disagrees on a good pose differs from camera to camera (5 % on fr3_teddy, 0.1 % in
+    # a synthetic room): without a running level no frame is disputed; after, the floor and the ratio apply.
+    options = TrackingOptions()
+    assert tracking.disagreement_limit(options, None) == math.inf
+    assert tracking.disagreement_limit(options, 0.001) == options.disagreement_floor
+    assert tracking.disagreement_limit(options, 0.05) == pytest.approx(options.disagreement_ratio * 0.05)
