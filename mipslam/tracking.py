@@ -18,7 +18,9 @@ Failure (non-finite loss, too few valid pixels, loss far above its running level
 motion-model pose and is reported, never raised: the pipeline flags the frame and skips mapping.
 
 :func:`track_frame` is the stage's step in the frame loop: the motion-model prediction, tracking,
-relocalisation when the loss stays high (:func:`relocalise`), and the projection of the result onto SE(3).
+relocalisation when the loss stays high (:func:`relocalise`), the check of a pose that the map's depth or the
+motion disputes (:func:`verify_pose`: a wider search, else the frame is flagged with its best pose), and the
+projection of the result onto SE(3).
 """
 from __future__ import annotations
 
@@ -200,13 +202,13 @@ class TrackingOptions:
     # Geometric check of a tracked pose (verify_pose): a covered pixel disagrees when its rendered depth D / A is
     # off the measured depth by more than this fraction of it; a frame is checked when the fraction of disagreeing
     # pixels exceeds both disagreement_floor and disagreement_ratio times its running level (repeated texture
-    # aligned one period off, where the photometric loss hardly rises; docs/tracking.md, "Failure").
+    # aligned one period off, where the photometric loss hardly rises; docs/tracking.md, "Checking a tracked pose").
     disagreement_tolerance: float = 0.1
     disagreement_floor: float = 0.015
     disagreement_ratio: float = 4.0
     # The checked frame's wider search runs the direct alignment over this many more pyramid levels (each halves
     # the image: a 9 degree turn is 36 pixels at 320x240, 4.5 at a 40x30 top level). Not always on: on fr1_rpy
-    # two more levels everywhere cost ATE (1.39 -> 1.51 cm, fast; docs/tracking.md, "Failure").
+    # two more levels everywhere cost ATE (1.39 -> 1.51 cm, fast; docs/tracking.md, "Checking a tracked pose").
     wide_search_levels: int = 2
     # A tracked pose this far from the motion model's prediction (a sudden turn or jolt: fr1_rpy's largest is
     # 2.8 degrees / 5.3 cm, a fast spin's onset 9 degrees) is checked by the same wider search.
@@ -842,7 +844,8 @@ def verify_pose(tracker: Tracker, frontend: Frontend | None, state: "SLAMState",
     ``depth_disagreement`` (not mapped, out of the running levels).
 
     Photometric alignment over repeated texture (blinds, checkers) can settle a period or more away, where the
-    colour loss hardly rises: the depth of the surfaces around them does not follow (docs/tracking.md, "Failure").
+    colour loss hardly rises: the depth of the surfaces around them does not follow (docs/tracking.md, "Checking a
+    tracked pose").
     """
     cfg = tracker.config
     if not result.ok:
@@ -872,11 +875,12 @@ def verify_pose(tracker: Tracker, frontend: Frontend | None, state: "SLAMState",
     if agreeing:
         best = min(agreeing, key=lambda r: r.loss)
         if best is not result:
+            shift_m, shift_deg = moved_from(best.T_wc, result.T_wc)
             log.info("frame %d: %s; a wider search moved it %.1f cm / %.1f deg (depth disagreement %.1f%% -> %.1f%%, "
                      "loss %.4f -> %.4f)", frame.index,
                      "tracked pose disputed by the map's depth" if disputed else "tracked pose far from the motion model's",
-                     100 * moved_from(best.T_wc, result.T_wc)[0], moved_from(best.T_wc, result.T_wc)[1],
-                     100 * result.depth_disagreement, 100 * best.depth_disagreement, result.loss, best.loss)
+                     100 * shift_m, shift_deg, 100 * result.depth_disagreement, 100 * best.depth_disagreement,
+                     result.loss, best.loss)
         return best
     best = min(results, key=lambda r: r.depth_disagreement)
     log.info("frame %d: flagged: the map's depth disagrees on %.1f%% of the pixels at the best pose found "
