@@ -71,10 +71,11 @@ class KeyframeOptions:
     covisibility_pixel_stride: int = 4
     window_min_overlap: float = 0.05  # window keyframes seeing less of the new keyframe than this leave
     # Old keyframes nearest in pose tested for covering a frame the last keyframe's rule makes one (0: off), and
-    # how many frames old a keyframe must be to count (10 s at 30 Hz: fr1_rpy sways over one place for 300 frames
-    # and loses 0.3 cm of ATE when its keyframes of a few seconds before stand in for new ones).
+    # how many frames old a keyframe must be to count (under 7 s at 30 Hz). fr1_rpy sways over one place: with no
+    # age it makes 25 keyframes instead of 43 and tracks at 1.76 cm instead of 1.39-1.59; from 200 frames on it
+    # keeps its keyframes (150: 41, 1.55 cm; 200: 44, 1.49; 300: 46, 1.48; docs/tracking.md, "Keyframes").
     revisit_candidates: int = 3
-    revisit_min_age: int = 300
+    revisit_min_age: int = 200
 
     @classmethod
     def from_config(cls, section: KeyframeConfig) -> "KeyframeOptions":
