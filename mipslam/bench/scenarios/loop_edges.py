@@ -1,5 +1,5 @@
 """How accurate loop edges are, against how accurate their information says they are (docs/tracking.md,
-"`balanced` on fr1_rpy").
+"Loop closure").
 
 Frame pairs (i, i + gap) of a sequence with ground truth are registered by the loop stage's verification
 (the loop stage's registration options, from the config) from their ground-truth relative pose, perturbed by a
