@@ -20,7 +20,8 @@ drifts slowly away from it). A frame without any valid depth never becomes a key
 to map).
 
 Revisits (:func:`covering_keyframe`): a frame whose view an old keyframe already holds adds none. Old: made
-at least ``revisit_min_age`` frames ago and outside the mapping window. When only the last-keyframe criteria
+at least ``revisit_min_age`` frames ago (the window may hold it: on laps of a room it holds the first lap's last
+keyframes while the later laps make none). When only the last-keyframe criteria
 fire (covisibility, translation, rotation; not coverage: the map lacks surfaces there), the
 ``revisit_candidates`` old keyframes nearest in pose (translation over the frame's median depth plus rotation
 over ``rotation_deg``) within the translation and rotation bounds are tested; the first whose covisibility
@@ -316,15 +317,15 @@ def covering_keyframe(config: KeyframeOptions, state: "SLAMState", frames: "Fram
     ``covisibility_threshold``; -1 when none does."""
     if config.revisit_candidates <= 0 or not state.keyframe_frames:
         return -1
-    window, newest = set(state.window), len(state.frames) - config.revisit_min_age
-    outside = [k for k, position in enumerate(state.keyframe_frames) if position <= newest and k not in window]
-    if not outside:
+    newest = len(state.frames) - config.revisit_min_age
+    old = [k for k, position in enumerate(state.keyframe_frames) if position <= newest]
+    if not old:
         return -1
     if not median_depth_m > 0:
         median_depth_m = median_valid_depth(frame.depth)
-    poses = state.keyframe_poses()[outside]
+    poses = state.keyframe_poses()[old]
     for nearest in nearest_keyframes(poses, T_wc, median_depth_m, config, config.revisit_candidates):
-        kf = outside[nearest]
+        kf = old[nearest]
         record = state.keyframe_record(kf)
         keyframe = frames[record.index]
         covis = covisibility(frame.depth, T_wc, frame.intrinsics.matrix(), keyframe.depth, record.T_wc,
