@@ -233,10 +233,12 @@ def quarter(values: list[float], which: int) -> list[float]:
 def time_growth_check(probe: FrameProbe, covered: int) -> tuple[str, bool, str]:
     """The per-frame time check of the module docstring: last against first quarter of the revisits (frames after
     ``covered``), keyframes and other frames apart (one class when the probe has no keyframe counts: a progress
-    file from before they were recorded)."""
+    file from before they were recorded). The last frame is left out, as in :func:`frame_time_check`."""
     cpu = [t for t in probe.cpu_periods()[1:] if t == t]
     kind = "CPU" if len(cpu) > 4 else "wall"  # CPU where recorded: others on the shared cores inflate wall time
     periods = probe.cpu_periods() if kind == "CPU" else probe.periods()
+    # the last frame's period runs to the end of the run (final refinement, outputs): no frame's cost
+    periods = periods[:-1] + [float("nan")]
     flags = probe.keyframe_flags() if probe.keyframes_before else [None] * len(periods)
     frames = list(zip(periods, flags))  # (seconds, became a keyframe) per frame
     revisits = [(t, flag) for t, flag in frames[covered + 1:] if t == t]
