@@ -109,8 +109,8 @@ class _Level:
 
 @dataclass(frozen=True)
 class _Seen:
-    """A render at tracking's finest level: its loss, depth-term pixels, covered pixels, covered pixels whose depth
-    disagrees (:meth:`Tracker._disagreeing_pixels`) and pose [4, 4] float64 world-to-camera."""
+    """A render at tracking's finest level: its loss, depth-term pixels, covered pixels and those whose depth
+    disagrees (:meth:`Tracker._coverage`), and pose [4, 4] float64 world-to-camera."""
 
     loss: float
     depth_pixels: int
@@ -390,8 +390,7 @@ class Tracker:
             value = float(loss.total)
             if not math.isfinite(value) or (best is not None and value >= best.loss):
                 return (T_cw if best is None else best.T_cw), best, steps
-            best = _Seen(value, loss.num_depth_pixels, self._covered_pixels(out.alpha, full),
-                         self._disagreeing_pixels(out.depth, out.alpha, full), T_cw)
+            best = _Seen(value, loss.num_depth_pixels, *self._coverage(out.depth, out.alpha, full), T_cw)
             opaque = out.alpha >= max(cfg.opacity_threshold, 1e-3)
             # The depth as the gradient steps' loss reads it (the composited sum(T a z) unless
             # TrackingOptions.depth_normalise): where the two objectives disagree the steps undo the alignment
@@ -415,18 +414,15 @@ class Tracker:
             T_cw = result.T.to(T_cw) @ T_cw
         return T_cw, best, steps
 
-    def _covered_pixels(self, alpha: torch.Tensor, level: _Level) -> int:
-        """Valid-depth pixels of ``level`` that a render with opacity ``alpha`` [h, w] covers (opacity >=
-        ``TrackingOptions.coverage_opacity``)."""
-        return int(((alpha >= self.config.coverage_opacity) & level.target_masks.depth).sum())
-
-    def _disagreeing_pixels(self, depth: torch.Tensor, alpha: torch.Tensor, level: _Level) -> int:
-        """Covered pixels (:meth:`_covered_pixels`) where the render's depth ``depth`` / ``alpha`` ([h, w] each,
-        metres) is off ``level``'s measured depth by more than ``TrackingOptions.disagreement_tolerance`` of it."""
+    def _coverage(self, depth: torch.Tensor, alpha: torch.Tensor, level: _Level) -> tuple[int, int]:
+        """(covered, disagreeing) pixel counts of a render with depth ``depth`` (metres) and opacity ``alpha`` ([h, w]
+        each) against ``level``: its valid-depth pixels the render covers (opacity >=
+        ``TrackingOptions.coverage_opacity``), and of those the ones where the rendered depth / alpha is off the
+        measured depth by more than ``TrackingOptions.disagreement_tolerance`` of it."""
         covered = (alpha >= self.config.coverage_opacity) & level.target_masks.depth
         rendered = depth.detach() / alpha.detach().clamp_min(self.config.coverage_opacity)
         off = (rendered - level.depth).abs() > self.config.disagreement_tolerance * level.depth
-        return int((covered & off).sum())
+        return int(covered.sum()), int((covered & off).sum())
 
     def _step_render(self, gaussians: ActivatedGaussians, rho: torch.Tensor, phi: torch.Tensor, T_cw_init: torch.Tensor,
                      level: _Level, exposure: torch.Tensor | None) -> _StepRender:
@@ -542,8 +538,7 @@ class Tracker:
                 if level is full and float(loss.total.detach()) < best_loss:
                     best_loss, best_depth_pixels = float(loss.total.detach()), loss.num_depth_pixels
                     best_step = full_steps
-                    best_covered = self._covered_pixels(alpha, level)
-                    best_disagreeing = self._disagreeing_pixels(step_render.depth, alpha, level)
+                    best_covered, best_disagreeing = self._coverage(step_render.depth, alpha, level)
                     best = (xi, None if exposure is None else exposure.detach().clone())
                 if level is full and i == level.iterations - 1:
                     iterations += 1

@@ -195,13 +195,13 @@ def test_the_first_steps_of_the_finest_level_render_in_the_coarse_mode(one_frame
     assert [(level.render_mode, level.iterations) for level in levels] == [("mip", 2), ("eaa", 4)]
     assert levels[0].color is levels[1].color and levels[0].intrinsics == levels[1].intrinsics  # the same images
     judged = []
-    real_covered = Tracker._covered_pixels
+    real_coverage = Tracker._coverage
 
-    def covered(self, alpha, level):  # called for each new best pose: the coarse-mode steps never judge
+    def coverage(self, depth, alpha, level):  # called for each new best pose: the coarse-mode steps never judge
         judged.append(level.render_mode)
-        return real_covered(self, alpha, level)
+        return real_coverage(self, depth, alpha, level)
 
-    monkeypatch.setattr(Tracker, "_covered_pixels", covered)
+    monkeypatch.setattr(Tracker, "_coverage", coverage)
     result = tracker.track(gaussians, sequence[0], sequence.gt_T_wc[0], running_loss=None)
     assert result.ok and result.iterations == 6 and judged and set(judged) == {"eaa"}
     # never all of the finest level's steps; nothing split without a different coarse mode
