@@ -765,10 +765,9 @@ def relocalise_keyframes(tracker: Tracker, frontend: Frontend | None, state: "SL
     """A frame whose tracking failed is matched to the newest ``FeatureOptions.relocalise_keyframes`` keyframes
     (features + PnP) and tracked again from the best match; it stays failed (not mapped) when no keyframe
     agrees or the retry fails too."""
-    if result.ok or frontend is None or not state.keyframe_frames:
+    if result.ok:
         return result
-    newest = [state.frames[p] for p in reversed(state.keyframe_frames)][: frontend.options.relocalise_keyframes]
-    start = frontend.relocalise(frame, [(frames[r.index], r.T_wc) for r in newest])
+    start = match_newest_keyframes(frontend, state, frame, frames)
     if start is None:
         return result
     retry = tracker.track(gaussians, frame, start.T_wc, state.running_loss)
@@ -777,6 +776,17 @@ def relocalise_keyframes(tracker: Tracker, frontend: Frontend | None, state: "SL
                  frame.index, start.reference_index, start.inliers, result.status)
         return retry
     return result
+
+
+def match_newest_keyframes(frontend: Frontend | None, state: "SLAMState", frame: Frame, frames: "FrameCache",
+                           prediction: torch.Tensor | None = None) -> FrontendStart | None:
+    """The feature front-end's best match (PnP) of ``frame`` against the newest
+    ``FeatureOptions.relocalise_keyframes`` keyframes, guided by ``prediction`` [4, 4] (camera-to-world) where
+    given; None without a front-end, a keyframe, or an agreeing match."""
+    if frontend is None or not state.keyframe_frames:
+        return None
+    newest = [state.frames[p] for p in reversed(state.keyframe_frames)][: frontend.options.relocalise_keyframes]
+    return frontend.relocalise(frame, [(frames[r.index], r.T_wc) for r in newest], prediction)
 
 
 def relocalise(tracker: Tracker, state: "SLAMState", frame: Frame, frames: "FrameCache",
@@ -854,11 +864,9 @@ def verify_pose(tracker: Tracker, frontend: Frontend | None, state: "SLAMState",
     wide = Tracker(replace(cfg, direct_levels=cfg.direct_levels + cfg.wide_search_levels), tracker.render_config)
     starts = [prediction] + ([] if torch.equal(T_wc_start, prediction) else [T_wc_start]) + [result.T_wc]
     retries = [(wide, start) for start in starts] if cfg.direct_iterations > 0 else []
-    if frontend is not None and state.keyframe_frames:
-        newest = [state.frames[p] for p in reversed(state.keyframe_frames)][: frontend.options.relocalise_keyframes]
-        matched = frontend.relocalise(frame, [(frames[r.index], r.T_wc) for r in newest], result.T_wc)
-        if matched is not None:
-            retries.append((tracker, matched.T_wc))
+    matched = match_newest_keyframes(frontend, state, frame, frames, result.T_wc)
+    if matched is not None:
+        retries.append((tracker, matched.T_wc))
     reference = state.newest_tracked_frame()
     if reference is not None:
         aligned = align_to_frame(cfg, frames[reference.index], reference.T_wc, frame, result.T_wc)
