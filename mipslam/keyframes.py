@@ -46,7 +46,7 @@ import torch
 
 from mipslam.config import KeyframeConfig, section_options
 from mipslam.geometry.camera import project, unproject
-from mipslam.geometry.se3 import rotation_angle, se3_inverse, transform_points
+from mipslam.geometry.se3 import relative_motion, se3_inverse, transform_points
 
 if TYPE_CHECKING:
     from mipslam.datasets import FrameCache
@@ -174,9 +174,7 @@ def decide_keyframe(
     covis = covisibility(depth, T_wc, K, last_keyframe_depth, last_keyframe_T_wc, last_keyframe_K,
                          depth_tolerance=config.covisibility_depth_tolerance,
                          pixel_stride=config.covisibility_pixel_stride)
-    T_kc = se3_inverse(last_keyframe_T_wc.to(torch.float64)) @ T_wc.to(torch.float64)
-    translation = float(T_kc[:3, 3].norm())
-    rotation = math.degrees(float(rotation_angle(T_kc[:3, :3])))
+    translation, rotation = (float(v) for v in relative_motion(last_keyframe_T_wc, T_wc))
     median = median_valid_depth(last_keyframe_depth)
     if math.isnan(median):  # the frame's own, only then: a median is a sort of its valid pixels
         median = median_valid_depth(depth)
@@ -298,12 +296,9 @@ def nearest_keyframes(keyframe_T_wc: torch.Tensor, T_wc: torch.Tensor, median_de
     keyframe_T_wc [K, 4, 4] camera-to-world."""
     if count <= 0 or len(keyframe_T_wc) == 0 or not median_depth_m > 0:
         return []
-    T_wc = T_wc.to(torch.float64)
-    poses = keyframe_T_wc.to(torch.float64)
-    translation = (poses[:, :3, 3] - T_wc[:3, 3]).norm(dim=1) / (median_depth_m * config.translation_ratio)
-    relative = poses[:, :3, :3].transpose(1, 2) @ T_wc[:3, :3]  # [K, 3, 3]
-    trace = relative.diagonal(dim1=1, dim2=2).sum(-1)
-    rotation = torch.rad2deg(torch.arccos(((trace - 1) / 2).clamp(-1.0, 1.0))) / config.rotation_deg
+    translation, rotation = relative_motion(keyframe_T_wc, T_wc)  # [K] each
+    translation = translation / (median_depth_m * config.translation_ratio)
+    rotation = rotation / config.rotation_deg
     near = (translation <= 1.0) & (rotation <= 1.0)
     distance = torch.where(near, translation + rotation, torch.inf)
     order = torch.argsort(distance)[:count]

@@ -38,7 +38,7 @@ from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry import nearest_rigid, resize_area
 from mipslam.frontend import Frontend, FrontendStart
 from mipslam.geometry.direct import DirectReference, DirectTarget, direct_reference, direct_target, pyramid_scales
-from mipslam.geometry.se3 import se3_exp, se3_exp_times, se3_exp_times_vjp, se3_inverse, se3_log
+from mipslam.geometry.se3 import relative_motion, se3_exp, se3_exp_times, se3_exp_times_vjp, se3_inverse, se3_log
 from mipslam.losses.photometric import (RGBDLoss, RGBDMasks, apply_affine_exposure, rgbd_l1_loss,
                                         rgbd_masks)
 from mipslam.loop.registration import RegistrationOptions, register_rgbd_odometry
@@ -827,13 +827,6 @@ def disagreement_limit(cfg: TrackingOptions, running: float | None) -> float:
     return max(cfg.disagreement_floor, cfg.disagreement_ratio * running)
 
 
-def moved_from(T_wc: torch.Tensor, T_wc_other: torch.Tensor) -> tuple[float, float]:
-    """Translation (m) and rotation (degrees) between two poses [4, 4]."""
-    relative = se3_inverse(T_wc_other.to(torch.float64)) @ T_wc.to(torch.float64)
-    cos = float((relative[:3, :3].trace() - 1) / 2)
-    return float(relative[:3, 3].norm()), math.degrees(math.acos(max(-1.0, min(1.0, cos))))
-
-
 def verify_pose(tracker: Tracker, frontend: Frontend | None, state: "SLAMState", frame: Frame, frames: "FrameCache",
                 gaussians: ActivatedGaussians, result: TrackingResult, prediction: torch.Tensor,
                 T_wc_start: torch.Tensor) -> TrackingResult:
@@ -856,7 +849,7 @@ def verify_pose(tracker: Tracker, frontend: Frontend | None, state: "SLAMState",
     if not result.ok:
         return result
     limit = disagreement_limit(cfg, state.running_disagreement)
-    moved_m, moved_deg = moved_from(result.T_wc, prediction)
+    moved_m, moved_deg = (float(v) for v in relative_motion(prediction, result.T_wc))
     disputed = result.depth_disagreement > limit  # NaN (nothing covered) is not
     jolted = moved_m > cfg.motion_check_m or moved_deg > cfg.motion_check_deg
     if not (disputed or jolted):
@@ -878,7 +871,7 @@ def verify_pose(tracker: Tracker, frontend: Frontend | None, state: "SLAMState",
     if agreeing:
         best = min(agreeing, key=lambda r: r.loss)
         if best is not result:
-            shift_m, shift_deg = moved_from(best.T_wc, result.T_wc)
+            shift_m, shift_deg = (float(v) for v in relative_motion(result.T_wc, best.T_wc))
             log.info("frame %d: %s; a wider search moved it %.1f cm / %.1f deg (depth disagreement %.1f%% -> %.1f%%, "
                      "loss %.4f -> %.4f)", frame.index,
                      "tracked pose disputed by the map's depth" if disputed else "tracked pose far from the motion model's",

@@ -15,6 +15,7 @@ from mipslam.geometry import (
     quat_wxyz_to_rotmat,
     quat_wxyz_to_xyzw,
     quat_xyzw_to_wxyz,
+    relative_motion,
     rigidity_error,
     rotation_angle,
     rotmat_to_quat_wxyz,
@@ -398,3 +399,16 @@ def test_se3_log_of_exp_is_accurate_at_small_angles(angle):
     xi = torch.cat([torch.tensor([0.2, -0.1, 0.4], dtype=torch.float64), phi])
     back = se3_log(se3_exp(xi))
     assert (back - xi).abs().max() < 1e-13 * max(1.0, float(xi.norm()))
+
+
+def test_relative_motion_is_the_motion_from_the_first_pose_to_the_second():
+    # b is a turned 30 degrees about its own y axis and moved 0.5 m along a's x: |t| and the angle of T_a^-1 T_b,
+    # whatever a's own pose; batched over the first argument
+    T_a = se3_exp(torch.tensor([0.3, -1.0, 2.0, 0.4, 0.1, -0.7], dtype=torch.float64))
+    T_ab = se3_exp(torch.tensor([0.0, 0.0, 0.0, 0.0, math.radians(30), 0.0], dtype=torch.float64))
+    T_ab[0, 3] = 0.5
+    translation, angle = relative_motion(T_a, T_a @ T_ab)
+    assert float(translation) == pytest.approx(0.5) and float(angle) == pytest.approx(30.0)
+    translations, angles = relative_motion(torch.stack([T_a, T_a @ T_ab]), T_a @ T_ab)
+    assert translations.shape == (2,) and torch.allclose(translations, torch.tensor([0.5, 0.0], dtype=torch.float64))
+    assert torch.allclose(angles, torch.tensor([30.0, 0.0], dtype=torch.float64), atol=1e-9)

@@ -17,6 +17,7 @@ from mipslam.geometry.se3 import (
     se3_from_rt,
     se3_inverse,
     se3_log,
+    relative_motion,
     so3_exp,
     so3_log,
     transform_points,
@@ -28,6 +29,6 @@ __all__ = [
     "hat", "vee", "so3_exp", "so3_log", "se3_exp", "se3_exp_times", "se3_exp_times_vjp", "se3_log", "se3_inverse",
     "se3_compose", "se3_from_rt", "interpolate_pose",
     "quat_wxyz_to_rotmat", "rotmat_to_quat_wxyz", "quat_xyzw_to_wxyz", "quat_wxyz_to_xyzw",
-    "transform_points", "rigidity_error", "rotation_angle", "nearest_rigid",
+    "transform_points", "rigidity_error", "rotation_angle", "relative_motion", "nearest_rigid",
     "pixel_grid", "project", "sampling_rate", "unproject", "unproject_depth", "resize_area",
 ]

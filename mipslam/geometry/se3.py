@@ -201,6 +201,13 @@ def rotation_angle(R: torch.Tensor) -> torch.Tensor:
     return so3_log(R).norm(dim=-1)
 
 
+def relative_motion(T_a: torch.Tensor, T_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Translation (the poses' units) and rotation angle (degrees) of ``T_a^-1 T_b``, the motion from pose a to
+    pose b.  T_a, T_b [..., 4, 4] (broadcast, float64) -> ([...], [...])"""
+    relative = se3_inverse(T_a.to(torch.float64)) @ T_b.to(torch.float64)
+    return relative[..., :3, 3].norm(dim=-1), torch.rad2deg(rotation_angle(relative[..., :3, :3]))
+
+
 def nearest_rigid(T: torch.Tensor) -> torch.Tensor:
     """The rigid transform nearest to ``T`` (rotation block projected onto SO(3) by SVD), float64.
 
