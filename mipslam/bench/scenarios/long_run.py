@@ -230,6 +230,12 @@ def quarter(values: list[float], which: int) -> list[float]:
     return values[which * n // 4:(which + 1) * n // 4]
 
 
+def frame_costs(periods: list[float]) -> list[float]:
+    """Per-frame periods (seconds) with the last one unknown (NaN): its period runs to the end of the run (final
+    refinement, outputs) and is no frame's cost."""
+    return periods[:-1] + [float("nan")]
+
+
 def time_growth_check(probe: FrameProbe, covered: int) -> tuple[str, bool, str]:
     """The per-frame time check of the module docstring: last against first quarter of the revisits (frames after
     ``covered``), keyframes and other frames apart (one class when the probe has no keyframe counts: a progress
@@ -237,8 +243,7 @@ def time_growth_check(probe: FrameProbe, covered: int) -> tuple[str, bool, str]:
     cpu = [t for t in probe.cpu_periods()[1:] if t == t]
     kind = "CPU" if len(cpu) > 4 else "wall"  # CPU where recorded: others on the shared cores inflate wall time
     periods = probe.cpu_periods() if kind == "CPU" else probe.periods()
-    # the last frame's period runs to the end of the run (final refinement, outputs): no frame's cost
-    periods = periods[:-1] + [float("nan")]
+    periods = frame_costs(periods)
     flags = probe.keyframe_flags() if probe.keyframes_before else [None] * len(periods)
     frames = list(zip(periods, flags))  # (seconds, became a keyframe) per frame
     revisits = [(t, flag) for t, flag in frames[covered + 1:] if t == t]
@@ -305,7 +310,7 @@ def frame_time_check(probe: FrameProbe) -> tuple[str, bool, str]:
     long-run target states it: on shared cores it carries the other processes' load). The last frame has no time:
     its period runs to the end of the run (final refinement, outputs)."""
     name = f"median frame time, last {FRAME_TIME_WINDOW} frames vs frames {FRAME_TIME_WINDOW}-{2 * FRAME_TIME_WINDOW}"
-    periods = probe.periods()[:-1] + [float("nan")]
+    periods = frame_costs(probe.periods())
     flags = probe.keyframe_flags() if probe.keyframes_before else None
     early, late = frame_time_windows(len(periods))
     parts = [] if len(periods) >= FRAME_TIME_FULL_MIN_FRAMES else [
