@@ -214,6 +214,16 @@ class MappingConfig:
 
 
 @dataclass(frozen=True)
+class LocalBAConfig:
+    """Local bundle adjustment of the keyframe window by its features before mapping (mipslam/local_ba.py; the
+    rest is ``LocalBAOptions``). Its features are ORB, as the front-end's."""
+
+    # Off in every config: it helps an undistorted real camera (fr3_teddy), not raw fr1 images or rendered data
+    # (docs/mapping.md, "Local bundle adjustment")
+    enabled: bool = False
+
+
+@dataclass(frozen=True)
 class RefineConfig:
     """The final refinement of the map over every keyframe after the last frame, and the keyframe poses that
     ``mipslam refine`` moves (mipslam/refinement.py; docs/mapping.md, "The final refinement")."""
@@ -269,6 +279,7 @@ class Config:
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
+    local_ba: LocalBAConfig = field(default_factory=LocalBAConfig)
     refine: RefineConfig = field(default_factory=RefineConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)

@@ -73,11 +73,13 @@ class FrameFeatures:
     keypoints: [M, 2] float32 pixel coordinates (u, v)
     descriptors: [M, 32] uint8 ORB descriptors (empty [0, 32] when none)
     points_c: [M, 3] float64 3D points in the frame's camera (metres), NaN rows without depth
+    octaves: [M] int64 scale-pyramid level each keypoint was found at (0 = full resolution); None: not known
     """
 
     keypoints: np.ndarray
     descriptors: np.ndarray
     points_c: np.ndarray
+    octaves: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.keypoints.shape[0])
@@ -127,7 +129,8 @@ def extract_features(
     grey = _grey_u8(color)
     keypoints, descriptors = _detector(options, grey.shape).detectAndCompute(grey, None)
     if descriptors is None or not keypoints:
-        return FrameFeatures(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros((0, 3)))
+        return FrameFeatures(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros((0, 3)),
+                             np.zeros(0, np.int64))
     uv = np.array([k.pt for k in keypoints], dtype=np.float32)  # [M, 2]
     depth_np = depth.detach().to("cpu", torch.float32).numpy()
     col = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, depth_np.shape[1] - 1)
@@ -138,7 +141,7 @@ def extract_features(
     points[valid, 0] = (uv[valid, 0] - intrinsics.cx) / intrinsics.fx * z[valid]
     points[valid, 1] = (uv[valid, 1] - intrinsics.cy) / intrinsics.fy * z[valid]
     points[valid, 2] = z[valid]
-    return FrameFeatures(uv, descriptors, points)
+    return FrameFeatures(uv, descriptors, points, np.array([k.octave for k in keypoints], dtype=np.int64))
 
 
 def match_features(query: np.ndarray, train: np.ndarray, ratio: float, max_hamming: int,

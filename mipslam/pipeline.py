@@ -26,6 +26,7 @@ from mipslam.datasets import FrameCache, RGBDSequence, make_sequence
 from mipslam.frontend import Frontend
 from mipslam.io.run_folder import write_json_atomic
 from mipslam.keyframes import KeyframeOptions, insert_keyframe, keyframe_decision
+from mipslam.local_ba import LocalBAOptions, LocalBundleAdjuster
 from mipslam.loop.closer import LoopCloser, LoopOptions, VerificationHook, close_loops
 from mipslam.mapping import Mapper, MappingOptions, map_keyframe, refine_after_correction, refine_map
 from mipslam.refinement import refine_options
@@ -58,7 +59,8 @@ class PipelineHooks:
     loop_verification(candidate keyframe, query keyframe, result) -> result: replaces a loop
         verification (e.g. a deliberately wrong loop edge);
     constants: stage constants replaced for an experiment, ``{"loop.min_keyframe_gap": 6}`` (a stage's options
-        field: TrackingOptions, MappingOptions, KeyframeOptions, LoopOptions), never config keys.
+        field: TrackingOptions, MappingOptions, KeyframeOptions, LoopOptions, LocalBAOptions as "local_ba"), never
+        config keys.
     """
 
     after_tracking: Callable[[int, TrackingResult, SLAMState], TrackingResult] | None = None
@@ -88,6 +90,7 @@ class Stages:
     hooks: PipelineHooks = field(default_factory=PipelineHooks)
     frontend: Frontend | None = None
     timing: SensorTiming = SensorTiming()
+    local_ba: LocalBundleAdjuster | None = None  # None: off (``local_ba.enabled`` false)
 
     @classmethod
     def build(cls, config: Config, sequence: RGBDSequence, device: torch.device, hooks: PipelineHooks | None = None,
@@ -98,17 +101,20 @@ class Stages:
         loop = (LoopCloser(hooks.options("loop", LoopOptions.from_config(config.loop, depth_noise_power=noise)),
                            verification_hook=hooks.loop_verification, observer=observer)
                 if config.loop.enabled else None)
-        observer.declare("read", "tracking", "keyframe", "mapping", *(("loop", "pgo") if loop is not None else ()))
+        frontend = Frontend(config.frontend) if config.frontend.method != "none" else None
+        local_ba_options = hooks.options("local_ba", LocalBAOptions.from_config(config.local_ba))
+        local_ba = LocalBundleAdjuster(local_ba_options) if local_ba_options.enabled else None
+        observer.declare("read", "tracking", "keyframe", "mapping", *(("local_ba",) if local_ba is not None else ()),
+                         *(("loop", "pgo") if loop is not None else ()))
         frames = FrameCache(sequence, device, capacity, read_ahead=sequence.random_access,
                             kept_bytes=KEYFRAME_CACHE_MIB * 2**20)
         observer.attach(frames)
-        frontend = Frontend(config.frontend) if config.frontend.method != "none" else None
         tracking = hooks.options("tracking", TrackingOptions.from_config(config.tracking, depth_noise_power=noise))
         timing = SensorTiming(tracking.align_depth_time, config.dataset.rolling_shutter_readout_s)
         mapping = hooks.options("mapping", MappingOptions.from_config(config.mapping))
         return cls(Tracker(tracking, config.render), Mapper(mapping, config.render),
                    hooks.options("keyframes", KeyframeOptions.from_config(config.keyframes)), frames, first_pose(sequence), loop, observer, hooks,
-                   frontend, timing)
+                   frontend, timing, local_ba)
 
 
 # ----------------------------------------------------------------------------- one frame
@@ -132,6 +138,9 @@ def process_frame(stages: Stages, state: SLAMState, index: int, timestamp: float
     if is_keyframe:
         with observe("mapping"):
             window = insert_keyframe(stages.keyframes, state, stages.frames, record)
+            if stages.local_ba is not None:
+                with observe("local_ba"):
+                    stages.local_ba.adjust_window(state, stages.frames)
             map_keyframe(stages.mapper, state, stages.frames, record, window)
         if stages.loop is not None:
             with observe("loop"):

@@ -88,6 +88,6 @@ def test_random_overrides_give_a_config_or_a_config_error(overrides):
 
 
 def test_the_fuzzed_sections_are_the_configs_sections():
-    assert set(SECTIONS) == {"run", "dataset", "render", "frontend", "tracking", "keyframes", "mapping", "refine", "loop",
-                             "eval"}
+    assert set(SECTIONS) == {"run", "dataset", "render", "frontend", "tracking", "keyframes", "mapping", "local_ba",
+                             "refine", "loop", "eval"}
     assert "iterations" in SECTIONS["tracking"] and "path" in SECTIONS["dataset"]
