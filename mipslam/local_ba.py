@@ -60,8 +60,8 @@ class LocalBAOptions:
     outlier_sigmas: float = 16.0  # matches further off at the current poses are left out
     # The window's poses as tracking and mapping left them are a measurement too: each free pose is held to them
     # with this standard deviation, so directions the features barely constrain stay where the render put them
-    prior_translation_m: float = 0.005
-    prior_rotation_deg: float = 0.25
+    prior_translation_m: float = 0.002
+    prior_rotation_deg: float = 0.1
     iterations: int = 5  # damped Gauss-Newton steps
     damping: float = 1e-3  # Levenberg-Marquardt: the normal equations' diagonal grows by this fraction
     depth_edge_ratio: float = 0.03  # a point whose 3x3 depth neighbourhood spans more than this of its depth is dropped
