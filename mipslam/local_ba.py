@@ -34,7 +34,7 @@ import torch.nn.functional as F
 
 from mipslam.config import LocalBAConfig, section_options
 from mipslam.frontend import FeatureOptions, FrameFeatures, extract_features, guided_matches
-from mipslam.geometry import se3_exp, se3_inverse, se3_log
+from mipslam.geometry import project, se3_exp, se3_inverse, se3_log
 from mipslam.types import Frame, Intrinsics
 
 if TYPE_CHECKING:
@@ -172,9 +172,7 @@ def reprojection_residuals(T_wc: torch.Tensor, observations: KeyframeObservation
     T_cw = se3_inverse(T_wc)
     T_ts = T_cw[observations.target] @ T_wc[observations.source]  # [N, 4, 4] source camera -> target camera
     p = (T_ts[:, :3, :3] @ observations.points.unsqueeze(-1)).squeeze(-1) + T_ts[:, :3, 3]  # [N, 3]
-    z = p[:, 2].clamp_min(1e-6)
-    projected = torch.stack([intrinsics.fx * p[:, 0] / z + intrinsics.cx,
-                             intrinsics.fy * p[:, 1] / z + intrinsics.cy], 1)
+    projected, _ = project(p, intrinsics.matrix(torch.float64))
     return projected - observations.pixels
 
 
