@@ -41,6 +41,7 @@ from mipslam.render import compiled_library
 from mipslam.types import Frame, Intrinsics
 
 _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
+ORB_SCALE_FACTOR = 1.2  # between ORB's pyramid levels: a keypoint of level l is found at 1.2^l px precision
 
 
 @dataclass(frozen=True)
@@ -115,7 +116,8 @@ def _grey_u8(color: torch.Tensor) -> np.ndarray:
 
 def _detector(options: FeatureOptions, image_size: tuple[int, int]):
     edge = max(8, min(31, min(image_size) // 16))  # keep features near the border of small images
-    return cv2.ORB_create(nfeatures=options.num_features, scaleFactor=1.2, nlevels=options.pyramid_levels,
+    return cv2.ORB_create(nfeatures=options.num_features, scaleFactor=ORB_SCALE_FACTOR,
+                          nlevels=options.pyramid_levels,
                           edgeThreshold=edge, patchSize=edge, fastThreshold=options.fast_threshold)
 
 

@@ -33,16 +33,13 @@ import torch
 import torch.nn.functional as F
 
 from mipslam.config import LocalBAConfig, section_options
-from mipslam.frontend import FeatureOptions, FrameFeatures, extract_features, guided_matches
+from mipslam.frontend import ORB_SCALE_FACTOR, FeatureOptions, FrameFeatures, extract_features, guided_matches
 from mipslam.geometry import project, se3_exp, se3_inverse, se3_log
 from mipslam.types import Frame, Intrinsics
 
 if TYPE_CHECKING:
     from mipslam.datasets import FrameCache
     from mipslam.state import SLAMState
-
-
-ORB_SCALE_FACTOR = 1.2  # the front-end's ORB pyramid scale (mipslam/frontend.py, _detector)
 
 
 @dataclass(frozen=True)
