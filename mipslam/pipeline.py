@@ -101,7 +101,6 @@ class Stages:
         loop = (LoopCloser(hooks.options("loop", LoopOptions.from_config(config.loop, depth_noise_power=noise)),
                            verification_hook=hooks.loop_verification, observer=observer)
                 if config.loop.enabled else None)
-        frontend = Frontend(config.frontend) if config.frontend.method != "none" else None
         local_ba_options = hooks.options("local_ba", LocalBAOptions.from_config(config.local_ba))
         local_ba = LocalBundleAdjuster(local_ba_options) if local_ba_options.enabled else None
         observer.declare("read", "tracking", "keyframe", "mapping", *(("local_ba",) if local_ba is not None else ()),
@@ -109,6 +108,7 @@ class Stages:
         frames = FrameCache(sequence, device, capacity, read_ahead=sequence.random_access,
                             kept_bytes=KEYFRAME_CACHE_MIB * 2**20)
         observer.attach(frames)
+        frontend = Frontend(config.frontend) if config.frontend.method != "none" else None
         tracking = hooks.options("tracking", TrackingOptions.from_config(config.tracking, depth_noise_power=noise))
         timing = SensorTiming(tracking.align_depth_time, config.dataset.rolling_shutter_readout_s)
         mapping = hooks.options("mapping", MappingOptions.from_config(config.mapping))
