@@ -12,7 +12,8 @@ candidates and optimisations.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
+from collections.abc import Iterable, MutableSequence
 from typing import Any, Protocol
 
 import torch
@@ -63,6 +64,143 @@ class FrameRecord:
     @property
     def tracked(self) -> bool:
         return self.status in ("initial", "ok")
+
+
+class FrameTable(MutableSequence):
+    """The run's :class:`FrameRecord` s, one per processed frame, stored as columns: a list of records in
+    memory that a long run can keep (a record as three tensors and a dataclass costs about 2.3 KB; a row here
+    about 330 bytes).
+
+    It reads as a list of records: ``table[i]`` (negative ``i`` too) builds the record of row ``i`` with its own
+    copies of the tensors, ``table[a:b]`` a list of them, ``table[i] = record`` and :meth:`append` store one.
+    Columns, grown by doubling: T_wc, T_wc_tracked [N, 4, 4] float64; exposure [N, 2] float32; index, keyframe_id,
+    reference_keyframe, tracking_iterations [N] int64; timestamp, tracking_loss [N] float64; status an index into
+    the table's list of distinct status strings.
+    """
+
+    _INT_COLUMNS = ("index", "keyframe_id", "reference_keyframe", "tracking_iterations")  # then the status code
+    _FLOAT_COLUMNS = ("timestamp", "tracking_loss")
+    SCALAR_COLUMNS = _INT_COLUMNS + _FLOAT_COLUMNS
+
+    def __init__(self, records: Iterable[FrameRecord] = ()):
+        self._size = 0
+        self._capacity = 0
+        self._statuses: list[str] = []
+        self._status_codes: dict[str, int] = {}
+        self._grow(16)
+        for record in records:
+            self.append(record)
+
+    def _grow(self, capacity: int) -> None:
+        def grown(old: torch.Tensor | None, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
+            new = torch.zeros((capacity, *shape), dtype=dtype)
+            if old is not None:
+                new[: self._size] = old[: self._size]
+            return new
+
+        first = self._capacity == 0
+        self._T_wc = grown(None if first else self._T_wc, (4, 4), torch.float64)
+        self._T_wc_tracked = grown(None if first else self._T_wc_tracked, (4, 4), torch.float64)
+        self._exposure = grown(None if first else self._exposure, (2,), torch.float32)
+        self._ints = grown(None if first else self._ints, (5,), torch.int64)  # index, kf id, ref kf, iterations, status
+        self._floats = grown(None if first else self._floats, (2,), torch.float64)  # timestamp, tracking loss
+        self._capacity = capacity
+
+    def _position(self, position: int) -> int:
+        if not isinstance(position, int):
+            raise TypeError(f"frame table positions are integers, not {type(position).__name__}")
+        if position < 0:
+            position += self._size
+        if not 0 <= position < self._size:
+            raise IndexError(f"frame position {position} outside the {self._size} recorded frames")
+        return position
+
+    def _code(self, status: str) -> int:
+        code = self._status_codes.get(status)
+        if code is None:
+            code = self._status_codes[status] = len(self._statuses)
+            self._statuses.append(status)
+        return code
+
+    def _store(self, row: int, record: FrameRecord) -> None:
+        self._T_wc[row] = record.T_wc.detach().to("cpu", torch.float64)
+        self._T_wc_tracked[row] = record.T_wc_tracked.detach().to("cpu", torch.float64)
+        self._exposure[row] = record.exposure.detach().to("cpu", torch.float32)
+        self._ints[row] = torch.tensor([record.index, record.keyframe_id, record.reference_keyframe,
+                                        record.tracking_iterations, self._code(record.status)], dtype=torch.int64)
+        self._floats[row, 0], self._floats[row, 1] = float(record.timestamp), float(record.tracking_loss)
+
+    def _record(self, row: int) -> FrameRecord:
+        index, keyframe_id, reference, iterations, status = self._ints[row].tolist()
+        timestamp, loss = self._floats[row].tolist()
+        return FrameRecord(index, timestamp, self._T_wc[row].clone(), self._exposure[row].clone(),
+                           self._statuses[status], loss, iterations, keyframe_id, reference,
+                           self._T_wc_tracked[row].clone())
+
+    def __len__(self) -> int:
+        return self._size
+
+    def __getitem__(self, position):
+        if isinstance(position, slice):
+            return [self._record(row) for row in range(*position.indices(self._size))]
+        return self._record(self._position(position))
+
+    def __setitem__(self, position, record: FrameRecord) -> None:
+        if isinstance(position, slice):
+            raise TypeError("frame table: set records one position at a time")
+        self._store(self._position(position), record)
+
+    def __delitem__(self, position) -> None:
+        raise TypeError("frame table: a recorded frame is never removed")
+
+    def insert(self, position: int, record: FrameRecord) -> None:
+        if position != self._size:
+            raise TypeError("frame table: records are appended in frame order, never inserted")
+        self.append(record)
+
+    def append(self, record: FrameRecord) -> None:
+        if self._size == self._capacity:
+            self._grow(2 * self._capacity)
+        self._store(self._size, record)
+        self._size += 1
+
+    def pose(self, position: int) -> torch.Tensor:
+        """Row ``position``'s T_wc [4, 4] float64 (a copy), without building its record."""
+        return self._T_wc[self._position(position)].clone()
+
+    def set_pose(self, position: int, T_wc: torch.Tensor) -> None:
+        """Row ``position`` takes the pose ``T_wc`` [4, 4] (stored float64)."""
+        self._T_wc[self._position(position)] = T_wc.detach().to("cpu", torch.float64)
+
+    def set_poses(self, T_wc: torch.Tensor) -> None:
+        """Every row takes its pose from ``T_wc`` [N, 4, 4] (stored float64)."""
+        if T_wc.shape != (self._size, 4, 4):
+            raise ValueError(f"{tuple(T_wc.shape)} poses for {self._size} frames")
+        self._T_wc[: self._size] = T_wc.detach().to("cpu", torch.float64)
+
+    def poses(self, *, as_tracked: bool = False) -> torch.Tensor:
+        """Every row's T_wc (or T_wc_tracked) -> [N, 4, 4] float64 (a copy)."""
+        return (self._T_wc_tracked if as_tracked else self._T_wc)[: self._size].clone()
+
+    def column(self, name: str) -> torch.Tensor:
+        """One of :attr:`SCALAR_COLUMNS` as a tensor [N] (a copy): int64 or float64."""
+        if name in self._INT_COLUMNS:
+            return self._ints[: self._size, self._INT_COLUMNS.index(name)].clone(memory_format=torch.contiguous_format)
+        if name in self._FLOAT_COLUMNS:
+            return self._floats[: self._size, self._FLOAT_COLUMNS.index(name)].clone(memory_format=torch.contiguous_format)
+        raise KeyError(f"frame table has no column {name!r}; it has {', '.join(self.SCALAR_COLUMNS)}")
+
+    def exposures(self) -> torch.Tensor:
+        """[N, 2] float32 (a copy)."""
+        return self._exposure[: self._size].clone()
+
+    def nbytes(self) -> int:
+        """Bytes the columns hold, spare capacity included."""
+        return sum(t.numel() * t.element_size()
+                   for t in (self._T_wc, self._T_wc_tracked, self._exposure, self._ints, self._floats))
+
+    def statuses(self) -> list[str]:
+        return [self._statuses[c] for c in self._ints[: self._size, 4].tolist()]
 
 
 @dataclass(frozen=True)
@@ -131,7 +269,7 @@ class SLAMState:
     gaussian_map: GaussianMap
     optimizer: GaussianOptimizer
     generator: torch.Generator
-    frames: list[FrameRecord] = field(default_factory=list)
+    frames: FrameTable = field(default_factory=FrameTable)  # a list of FrameRecord given here becomes a table
     keyframe_frames: list[int] = field(default_factory=list)  # keyframe id -> position in ``frames``
     window: list[int] = field(default_factory=list)  # keyframe ids, newest first
     running_loss: float | None = None
@@ -146,6 +284,10 @@ class SLAMState:
         generator = torch.Generator(device="cpu")
         generator.manual_seed(seed)
         return cls(gmap, GaussianOptimizer.from_config(gmap, mapping_options), generator)
+
+    def __post_init__(self):
+        if not isinstance(self.frames, FrameTable):
+            self.frames = FrameTable(self.frames)
 
     # ------------------------------------------------------------------ queries
 
@@ -166,16 +308,14 @@ class SLAMState:
     def poses(self, *, as_tracked: bool = False) -> torch.Tensor:
         """All estimated poses so far (``as_tracked``: as tracking left them, ``FrameRecord.T_wc_tracked``).
         -> [F, 4, 4] float64"""
-        if not self.frames:
-            return torch.zeros(0, 4, 4, dtype=torch.float64)
-        return torch.stack([(f.T_wc_tracked if as_tracked else f.T_wc).to(torch.float64) for f in self.frames])
+        return self.frames.poses(as_tracked=as_tracked)
 
     # ------------------------------------------------------------------ updates
 
     def set_keyframe_pose(self, keyframe_id: int, T_wc: torch.Tensor) -> None:
         """Keyframe ``keyframe_id`` takes pose ``T_wc`` [4, 4] (camera-to-world; stored float64 on CPU)."""
         position = self.keyframe_frames[keyframe_id]
-        self.frames[position] = replace(self.frames[position], T_wc=T_wc.to(torch.float64).cpu())
+        self.frames.set_pose(position, T_wc)
 
     def keyframe_poses(self) -> torch.Tensor:
         """Current poses of all keyframes, by keyframe id.  -> [K, 4, 4] float64"""
@@ -188,8 +328,7 @@ class SLAMState:
         exactly, where applying the inverse correction would blend the non-keyframes again."""
         if T_wc.shape != (len(self.frames), 4, 4):
             raise ValueError(f"{tuple(T_wc.shape)} poses for {len(self.frames)} frames")
-        self.frames = [replace(record, T_wc=T_wc[k].to(torch.float64).cpu().clone())
-                       for k, record in enumerate(self.frames)]
+        self.frames.set_poses(T_wc)
 
     def correct_keyframe_poses(self, T_wc_new: torch.Tensor, *, move_map: bool = True) -> int:
         """Apply a pose-graph correction: keyframes take their new poses, every other frame moves with the
@@ -210,21 +349,22 @@ class SLAMState:
         changed = [not torch.equal(a, b) for a, b in zip(T_new, T_old)]
         corrections = T_new @ se3_inverse(T_old)  # [K, 4, 4]
         corrections[[not c for c in changed]] = torch.eye(4, dtype=torch.float64)  # exactly: those frames stay
-        for position, record in enumerate(self.frames):
-            if record.keyframe_id >= 0:
-                if changed[record.keyframe_id]:
-                    self.frames[position] = replace(record, T_wc=T_new[record.keyframe_id].clone())
+        keyframe_ids = self.frames.column("keyframe_id").tolist()
+        references = self.frames.column("reference_keyframe").tolist()
+        for position, (keyframe_id, r) in enumerate(zip(keyframe_ids, references)):
+            if keyframe_id >= 0:
+                if changed[keyframe_id]:
+                    self.frames.set_pose(position, T_new[keyframe_id])
                 continue
-            r = record.reference_keyframe
             following = r + 1 if 0 <= r and r + 1 < len(changed) else None
             if r < 0 or not (changed[r] or (following is not None and changed[following])):
                 continue  # no reference keyframe, or nothing around this frame moved
-            T = corrections[r] @ record.T_wc.to(torch.float64)
+            T_wc = self.frames.pose(position)
+            T = corrections[r] @ T_wc
             if following is not None:
                 start, end = self.keyframe_frames[r], self.keyframe_frames[following]
-                T = interpolate_pose(T, corrections[following] @ record.T_wc.to(torch.float64),
-                                     (position - start) / (end - start))
-            self.frames[position] = replace(record, T_wc=T)
+                T = interpolate_pose(T, corrections[following] @ T_wc, (position - start) / (end - start))
+            self.frames.set_pose(position, T)
         return self.gaussian_map.transform_by_anchor(corrections) if move_map else 0
 
     def append_frame(self, index: int, timestamp: float, tracked: TrackedPose, is_keyframe: bool) -> FrameRecord:
@@ -256,15 +396,10 @@ class SLAMState:
         """Plain tensors and JSON metadata that :meth:`from_checkpoint` turns back into this state."""
         frames = self.frames
         tensors = {
-            "frames.index": torch.tensor([f.index for f in frames], dtype=torch.int64),
-            "frames.timestamp": torch.tensor([f.timestamp for f in frames], dtype=torch.float64),
+            **{f"frames.{name}": frames.column(name) for name in FrameTable.SCALAR_COLUMNS},
             "frames.T_wc": self.poses(),
             "frames.T_wc_tracked": self.poses(as_tracked=True),
-            "frames.exposure": torch.stack([f.exposure.float().cpu() for f in frames]) if frames else torch.zeros(0, 2),
-            "frames.tracking_loss": torch.tensor([f.tracking_loss for f in frames], dtype=torch.float64),
-            "frames.tracking_iterations": torch.tensor([f.tracking_iterations for f in frames], dtype=torch.int64),
-            "frames.keyframe_id": torch.tensor([f.keyframe_id for f in frames], dtype=torch.int64),
-            "frames.reference_keyframe": torch.tensor([f.reference_keyframe for f in frames], dtype=torch.int64),
+            "frames.exposure": frames.exposures(),
             "keyframe_frames": torch.tensor(self.keyframe_frames, dtype=torch.int64),
             "window": torch.tensor(self.window, dtype=torch.int64),
             **with_prefix("map", {k: v.detach().cpu() for k, v in self.gaussian_map.state_dict().items()}),
@@ -276,7 +411,7 @@ class SLAMState:
         metadata = {
             "state_version": STATE_VERSION,
             "next_frame": self.next_frame,
-            "statuses": [f.status for f in frames],
+            "statuses": frames.statuses(),
             "running_loss": self.running_loss,
             "running_disagreement": self.running_disagreement,
             "gaussian_counts": self.gaussian_counts,
@@ -300,21 +435,21 @@ class SLAMState:
         # checkpoints written before the tracked poses were kept: the current poses stand in for them (the motion
         # model then differences them, as it did when those checkpoints were written)
         tracked = tensors.get("frames.T_wc_tracked", tensors["frames.T_wc"])
-        frames = [
+        frames = FrameTable(
             FrameRecord(
                 index=int(tensors["frames.index"][i]),
                 timestamp=float(tensors["frames.timestamp"][i]),
-                T_wc=tensors["frames.T_wc"][i].clone(),
-                exposure=tensors["frames.exposure"][i].clone(),
+                T_wc=tensors["frames.T_wc"][i],
+                exposure=tensors["frames.exposure"][i],
                 status=statuses[i],
                 tracking_loss=float(tensors["frames.tracking_loss"][i]),
                 tracking_iterations=int(tensors["frames.tracking_iterations"][i]),
                 keyframe_id=int(tensors["frames.keyframe_id"][i]),
                 reference_keyframe=int(tensors["frames.reference_keyframe"][i]),
-                T_wc_tracked=tracked[i].clone(),
+                T_wc_tracked=tracked[i],
             )
             for i in range(len(statuses))
-        ]
+        )
         running = metadata["running_loss"]
         disagreement = metadata.get("running_disagreement")  # absent from checkpoints of earlier versions
         return cls(
