@@ -128,7 +128,7 @@ def write_checkpoint(folder: RunFolder, state: SLAMState, config: Config, observ
     """The state, and the observer's timings beside it (a resumed run's timings.json covers every session)."""
     with observer.stage("checkpoint", timed=False):
         tensors, metadata = state.to_checkpoint()
-        metadata["timings"] = observer.timings
+        metadata["timings"] = observer.timing_lists()
         return save_checkpoint(folder.checkpoints, tensors, metadata, config=config_to_dict(config),
                                keep=KEEP_CHECKPOINTS)
 
