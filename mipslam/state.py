@@ -12,8 +12,9 @@ candidates and optimisations.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+import operator
 from collections.abc import Iterable, MutableSequence
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import torch
@@ -107,8 +108,7 @@ class FrameTable(MutableSequence):
         self._capacity = capacity
 
     def _position(self, position: int) -> int:
-        if not isinstance(position, int):
-            raise TypeError(f"frame table positions are integers, not {type(position).__name__}")
+        position = operator.index(position)  # any integer (numpy's, a 0-d tensor's); TypeError for the rest
         if position < 0:
             position += self._size
         if not 0 <= position < self._size:
