@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import operator
+from array import array
 from collections.abc import Iterable, MutableSequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -274,7 +275,7 @@ class SLAMState:
     window: list[int] = field(default_factory=list)  # keyframe ids, newest first
     running_loss: float | None = None
     running_disagreement: float | None = None  # the same average of tracked frames' depth disagreement
-    gaussian_counts: list[int] = field(default_factory=list)
+    gaussian_counts: array = field(default_factory=lambda: array("q"))  # per frame, as C int64 (8 bytes a frame)
     loop: LoopState = field(default_factory=LoopState.empty)
     loop_log: dict[str, list[dict[str, Any]]] = field(default_factory=lambda: {"candidates": [], "optimisations": []})
 
@@ -288,6 +289,8 @@ class SLAMState:
     def __post_init__(self):
         if not isinstance(self.frames, FrameTable):
             self.frames = FrameTable(self.frames)
+        if not isinstance(self.gaussian_counts, array):
+            self.gaussian_counts = array("q", self.gaussian_counts)
 
     # ------------------------------------------------------------------ queries
 
@@ -414,7 +417,7 @@ class SLAMState:
             "statuses": frames.statuses(),
             "running_loss": self.running_loss,
             "running_disagreement": self.running_disagreement,
-            "gaussian_counts": self.gaussian_counts,
+            "gaussian_counts": self.gaussian_counts.tolist(),
             "rng": rng_meta,
             "loop_log": self.loop_log,
         }
@@ -458,7 +461,7 @@ class SLAMState:
             window=[int(v) for v in tensors["window"].tolist()],
             running_loss=None if running is None else float(running),
             running_disagreement=None if disagreement is None else float(disagreement),
-            gaussian_counts=[int(v) for v in metadata["gaussian_counts"]],
+            gaussian_counts=array("q", (int(v) for v in metadata["gaussian_counts"])),
             loop=LoopState.from_state_dict(select_prefix("loop", tensors)),
             loop_log={"candidates": list(metadata["loop_log"]["candidates"]),
                       "optimisations": list(metadata["loop_log"]["optimisations"])},

@@ -99,13 +99,14 @@ def test_the_state_keeps_its_records_in_a_table_through_a_checkpoint_file(tmp_pa
     options = MappingOptions()
     records = [_record(k, keyframe_id=0 if k == 0 else -1, reference=-1 if k == 0 else 0) for k in range(frames)]
     state = SLAMState(gmap, GaussianOptimizer.from_config(gmap, options), torch.Generator(), frames=list(records),
-                      keyframe_frames=[0], window=[0])
+                      keyframe_frames=[0], window=[0], gaussian_counts=list(range(frames)))
     assert isinstance(state.frames, FrameTable)
     tensors, metadata = state.to_checkpoint()
     path = save_checkpoint(tmp_path, tensors, metadata, config={})
     checkpoint = read_checkpoint(path)
     restored = SLAMState.from_checkpoint(checkpoint.tensors, checkpoint.metadata, options, torch.device("cpu"))
     assert isinstance(restored.frames, FrameTable) and len(restored.frames) == frames
+    assert list(restored.gaussian_counts) == list(range(frames))
     for a, b in zip(restored.frames, records, strict=True):
         _assert_same(a, b)
     assert math.isclose(restored.frames[-1].tracking_loss, 1.0 / frames)
