@@ -71,7 +71,7 @@ class FrameRecord:
 class FrameTable(MutableSequence):
     """The run's :class:`FrameRecord` s, one per processed frame, stored as columns: a list of records in
     memory that a long run can keep (a record as three tensors and a dataclass costs about 2.3 KB; a row here
-    about 330 bytes).
+    320 bytes).
 
     It reads as a list of records: ``table[i]`` (negative ``i`` too) builds the record of row ``i`` with its own
     copies of the tensors, ``table[a:b]`` a list of them, ``table[i] = record`` and :meth:`append` store one.
@@ -81,31 +81,30 @@ class FrameTable(MutableSequence):
     """
 
     _INT_COLUMNS = ("index", "keyframe_id", "reference_keyframe", "tracking_iterations")  # then the status code
+    _STATUS_COLUMN = len(_INT_COLUMNS)
     _FLOAT_COLUMNS = ("timestamp", "tracking_loss")
     SCALAR_COLUMNS = _INT_COLUMNS + _FLOAT_COLUMNS
+    # attribute -> (row shape, dtype) of each column tensor
+    _LAYOUT = {"_T_wc": ((4, 4), torch.float64), "_T_wc_tracked": ((4, 4), torch.float64),
+               "_exposure": ((2,), torch.float32), "_ints": ((len(_INT_COLUMNS) + 1,), torch.int64),
+               "_floats": ((len(_FLOAT_COLUMNS),), torch.float64)}
 
     def __init__(self, records: Iterable[FrameRecord] = ()):
         self._size = 0
         self._capacity = 0
         self._statuses: list[str] = []
         self._status_codes: dict[str, int] = {}
+        for name, (shape, dtype) in self._LAYOUT.items():
+            setattr(self, name, torch.zeros((0, *shape), dtype=dtype))
         self._grow(16)
         for record in records:
             self.append(record)
 
     def _grow(self, capacity: int) -> None:
-        def grown(old: torch.Tensor | None, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
-            new = torch.zeros((capacity, *shape), dtype=dtype)
-            if old is not None:
-                new[: self._size] = old[: self._size]
-            return new
-
-        first = self._capacity == 0
-        self._T_wc = grown(None if first else self._T_wc, (4, 4), torch.float64)
-        self._T_wc_tracked = grown(None if first else self._T_wc_tracked, (4, 4), torch.float64)
-        self._exposure = grown(None if first else self._exposure, (2,), torch.float32)
-        self._ints = grown(None if first else self._ints, (5,), torch.int64)  # index, kf id, ref kf, iterations, status
-        self._floats = grown(None if first else self._floats, (2,), torch.float64)  # timestamp, tracking loss
+        for name, (shape, dtype) in self._LAYOUT.items():
+            grown = torch.zeros((capacity, *shape), dtype=dtype)
+            grown[: self._size] = getattr(self, name)[: self._size]
+            setattr(self, name, grown)
         self._capacity = capacity
 
     def _position(self, position: int) -> int:
@@ -197,11 +196,10 @@ class FrameTable(MutableSequence):
 
     def nbytes(self) -> int:
         """Bytes the columns hold, spare capacity included."""
-        return sum(t.numel() * t.element_size()
-                   for t in (self._T_wc, self._T_wc_tracked, self._exposure, self._ints, self._floats))
+        return sum(getattr(self, name).numel() * getattr(self, name).element_size() for name in self._LAYOUT)
 
     def statuses(self) -> list[str]:
-        return [self._statuses[c] for c in self._ints[: self._size, 4].tolist()]
+        return [self._statuses[c] for c in self._ints[: self._size, self._STATUS_COLUMN].tolist()]
 
 
 @dataclass(frozen=True)
@@ -324,7 +322,7 @@ class SLAMState:
         """Current poses of all keyframes, by keyframe id.  -> [K, 4, 4] float64"""
         if not self.keyframe_frames:
             return torch.zeros(0, 4, 4, dtype=torch.float64)
-        return torch.stack([self.frames[p].T_wc.to(torch.float64) for p in self.keyframe_frames])
+        return torch.stack([self.frames.pose(p) for p in self.keyframe_frames])
 
     def set_poses(self, T_wc: torch.Tensor) -> None:
         """Every frame takes its pose from ``T_wc`` [F, 4, 4] (as :meth:`poses` returned it): undoes a correction

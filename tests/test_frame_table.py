@@ -90,7 +90,7 @@ def test_out_of_range_and_unsupported_edits_are_errors():
 def test_a_row_costs_a_few_hundred_bytes():
     table = FrameTable(_record(k) for k in range(5000))
     per_row = table.nbytes() / len(table)
-    assert per_row < 2 * 400  # 344 bytes a row, doubled at most by the growth's spare capacity
+    assert per_row < 2 * 400  # 320 bytes a row, doubled at most by the growth's spare capacity
 
 
 @pytest.mark.parametrize("frames", [1, 40])
