@@ -218,8 +218,8 @@ class LocalBAConfig:
     """Local bundle adjustment of the keyframe window by its features before mapping (mipslam/local_ba.py; the
     rest is ``LocalBAOptions``). Its features are ORB, as the front-end's."""
 
-    # On in the tum config (a real camera's keyframes); off by default and for rendered data, whose exact depth
-    # the features cannot improve on (docs/mapping.md, "Local bundle adjustment")
+    # On in the tum config (a real camera's keyframes) and the fast preset (a coarse map); off by default and for
+    # rendered data, whose exact depth the features cannot improve on (docs/mapping.md, "Local bundle adjustment")
     enabled: bool = False
 
 
