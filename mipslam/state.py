@@ -178,6 +178,16 @@ class FrameTable(MutableSequence):
             raise ValueError(f"{tuple(T_wc.shape)} poses for {self._size} frames")
         self._T_wc[: self._size] = T_wc.detach().to("cpu", torch.float64)
 
+    def poses_at(self, rows: torch.Tensor) -> torch.Tensor:
+        """The T_wc of rows ``rows`` [M] int64 (positions in ``[0, len)``) -> [M, 4, 4] float64 (a copy)."""
+        return self._T_wc[: self._size][rows]
+
+    def set_poses_at(self, rows: torch.Tensor, T_wc: torch.Tensor) -> None:
+        """Rows ``rows`` [M] int64 (positions in ``[0, len)``) take the poses ``T_wc`` [M, 4, 4] (stored float64)."""
+        if T_wc.shape != (len(rows), 4, 4):
+            raise ValueError(f"{tuple(T_wc.shape)} poses for {len(rows)} rows")
+        self._T_wc[: self._size][rows] = T_wc.detach().to("cpu", torch.float64)
+
     def poses(self, *, as_tracked: bool = False) -> torch.Tensor:
         """Every row's T_wc (or T_wc_tracked) -> [N, 4, 4] float64 (a copy)."""
         return (self._T_wc_tracked if as_tracked else self._T_wc)[: self._size].clone()
@@ -350,22 +360,33 @@ class SLAMState:
         changed = [not torch.equal(a, b) for a, b in zip(T_new, T_old)]
         corrections = T_new @ se3_inverse(T_old)  # [K, 4, 4]
         corrections[[not c for c in changed]] = torch.eye(4, dtype=torch.float64)  # exactly: those frames stay
-        keyframe_ids = self.frames.column("keyframe_id").tolist()
-        references = self.frames.column("reference_keyframe").tolist()
-        for position, (keyframe_id, r) in enumerate(zip(keyframe_ids, references)):
-            if keyframe_id >= 0:
-                if changed[keyframe_id]:
-                    self.frames.set_pose(position, T_new[keyframe_id])
-                continue
-            following = r + 1 if 0 <= r and r + 1 < len(changed) else None
-            if r < 0 or not (changed[r] or (following is not None and changed[following])):
-                continue  # no reference keyframe, or nothing around this frame moved
-            T_wc = self.frames.pose(position)
+        if not changed:
+            return self.gaussian_map.transform_by_anchor(corrections) if move_map else 0
+        changed_ids = torch.tensor(changed, dtype=torch.bool)
+        keyframe_ids = self.frames.column("keyframe_id")
+        references = self.frames.column("reference_keyframe")
+        keyframe_rows = torch.nonzero(keyframe_ids >= 0).flatten()
+        keyframe_rows = keyframe_rows[changed_ids[keyframe_ids[keyframe_rows]]]
+        if len(keyframe_rows):
+            self.frames.set_poses_at(keyframe_rows, T_new[keyframe_ids[keyframe_rows]])
+        # the other frames whose reference keyframe r, or the next one n, moved: [M] rows
+        last = len(changed) - 1
+        has_next = (references >= 0) & (references < last)
+        next_moved = has_next & changed_ids[(references + 1).clamp(0, last)]
+        moved = (keyframe_ids < 0) & (references >= 0) & (changed_ids[references.clamp(0, last)] | next_moved)
+        rows = torch.nonzero(moved).flatten()
+        if len(rows):
+            r = references[rows]
+            T_wc = self.frames.poses_at(rows)  # [M, 4, 4]
             T = corrections[r] @ T_wc
-            if following is not None:
-                start, end = self.keyframe_frames[r], self.keyframe_frames[following]
-                T = interpolate_pose(T, corrections[following] @ T_wc, (position - start) / (end - start))
-            self.frames.set_pose(position, T)
+            between = has_next[rows]  # frames before the newest keyframe: interpolated towards n
+            if bool(between.any()):
+                positions = torch.tensor(self.keyframe_frames, dtype=torch.int64)
+                rb, kb = r[between], rows[between]
+                start, end = positions[rb], positions[rb + 1]
+                weight = (kb - start).to(torch.float64) / (end - start).to(torch.float64)
+                T[between] = interpolate_pose(T[between], corrections[rb + 1] @ T_wc[between], weight)
+            self.frames.set_poses_at(rows, T)
         return self.gaussian_map.transform_by_anchor(corrections) if move_map else 0
 
     def append_frame(self, index: int, timestamp: float, tracked: TrackedPose, is_keyframe: bool) -> FrameRecord:

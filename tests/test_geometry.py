@@ -10,6 +10,7 @@ from torch.autograd import gradcheck
 
 from mipslam.geometry import (
     hat,
+    interpolate_pose,
     pixel_grid,
     project,
     quat_wxyz_to_rotmat,
@@ -412,3 +413,20 @@ def test_relative_motion_is_the_motion_from_the_first_pose_to_the_second():
     translations, angles = relative_motion(torch.stack([T_a, T_a @ T_ab]), T_a @ T_ab)
     assert translations.shape == (2,) and torch.allclose(translations, torch.tensor([0.5, 0.0], dtype=torch.float64))
     assert torch.allclose(angles, torch.tensor([30.0, 0.0], dtype=torch.float64), atol=1e-9)
+
+
+def test_interpolate_pose_batched_matches_one_pose_at_a_time():
+    generator = torch.Generator().manual_seed(3)
+    T_a = se3_exp(0.5 * torch.randn(7, 6, generator=generator, dtype=torch.float64))
+    T_b = se3_exp(0.5 * torch.randn(7, 6, generator=generator, dtype=torch.float64))
+    weight = torch.rand(7, generator=generator, dtype=torch.float64)
+    batched = interpolate_pose(T_a, T_b, weight)
+    assert batched.shape == (7, 4, 4)
+    for k in range(7):
+        torch.testing.assert_close(batched[k], interpolate_pose(T_a[k], T_b[k], float(weight[k])), rtol=0, atol=1e-12)
+    # the ends are the poses themselves, halfway the rotation is half the relative one
+    torch.testing.assert_close(interpolate_pose(T_a, T_b, torch.zeros(7, dtype=torch.float64)), T_a, rtol=0, atol=1e-12)
+    torch.testing.assert_close(interpolate_pose(T_a, T_b, 1.0), T_b, rtol=0, atol=1e-12)
+    half = interpolate_pose(T_a[0], T_b[0], 0.5)
+    angle_ab = float(rotation_angle(T_a[0, :3, :3].T @ T_b[0, :3, :3]))
+    assert float(rotation_angle(T_a[0, :3, :3].T @ half[:3, :3])) == pytest.approx(angle_ab / 2, abs=1e-12)

@@ -254,6 +254,53 @@ def test_frames_between_two_keyframes_blend_their_corrections_and_an_undo_is_exa
         state.set_poses(before[:4])
 
 
+def _corrected_one_frame_at_a_time(T_wc, roles, keyframe_frames, T_new):
+    """The correction of :meth:`SLAMState.correct_keyframe_poses` written out frame by frame (its docstring)."""
+    from mipslam.geometry import interpolate_pose
+
+    T_old = torch.stack([T_wc[p] for p in keyframe_frames])
+    changed = [not torch.equal(a, b) for a, b in zip(T_new, T_old)]
+    C = [n @ se3_inverse(o) if c else torch.eye(4, dtype=F64) for n, o, c in zip(T_new, T_old, changed)]
+    out = T_wc.clone()
+    for position, (keyframe_id, r) in enumerate(roles):
+        if keyframe_id >= 0:
+            out[position] = T_new[keyframe_id] if changed[keyframe_id] else T_wc[position]
+            continue
+        following = r + 1 if 0 <= r and r + 1 < len(changed) else None
+        if r < 0 or not (changed[r] or (following is not None and changed[following])):
+            continue
+        T = C[r] @ T_wc[position]
+        if following is not None:
+            start, end = keyframe_frames[r], keyframe_frames[following]
+            T = interpolate_pose(T, C[following] @ T_wc[position], (position - start) / (end - start))
+        out[position] = T
+    return out
+
+
+def test_the_correction_of_many_frames_matches_the_frame_by_frame_rule():
+    generator = torch.Generator().manual_seed(5)
+    keyframe_frames = [2, 5, 6, 11, 17]  # frames 0-1 come before any keyframe (no reference: they stay)
+    roles, keyframe_id = [], -1
+    for position in range(22):
+        if position in keyframe_frames:
+            keyframe_id += 1
+            roles.append((keyframe_id, keyframe_id - 1))
+        else:
+            roles.append((-1, keyframe_id))
+    T = se3_exp(0.3 * torch.randn(22, 6, generator=generator, dtype=F64))
+    frames = [FrameRecord(k, float(k), T[k], torch.zeros(2), "ok", 0.1, 5, kf, ref, T[k])
+              for k, (kf, ref) in enumerate(roles)]
+    state = SLAMState(GaussianMap.empty(dtype=torch.float32), None, torch.Generator(), frames=frames,
+                      keyframe_frames=keyframe_frames)
+    C = se3_exp(0.05 * torch.randn(5, 6, generator=generator, dtype=F64))
+    T_new = torch.stack([C[k] @ T[p] for k, p in enumerate(keyframe_frames)])
+    T_new[2] = T[keyframe_frames[2]]  # keyframe 2 stays: its frames move only towards keyframe 3
+    expected = _corrected_one_frame_at_a_time(T, roles, keyframe_frames, T_new)
+    state.correct_keyframe_poses(T_new)
+    torch.testing.assert_close(state.poses(), expected, rtol=0, atol=1e-12)  # batched products: rounding
+    torch.testing.assert_close(state.poses()[:2], T[:2], rtol=0, atol=0)
+
+
 # ----------------------------------------------------------------------------- robustness
 
 

@@ -331,12 +331,14 @@ def _check_left_increment(name: str, rho: torch.Tensor, phi: torch.Tensor, T: to
                          f"{tuple(phi.shape)} and {tuple(T.shape)}")
 
 
-def interpolate_pose(T_a: torch.Tensor, T_b: torch.Tensor, weight: float) -> torch.Tensor:
-    """Pose a fraction ``weight`` of the way from T_a to T_b.  [4, 4], [4, 4] -> [4, 4]
+def interpolate_pose(T_a: torch.Tensor, T_b: torch.Tensor, weight: float | torch.Tensor) -> torch.Tensor:
+    """Pose a fraction ``weight`` of the way from T_a to T_b.  [..., 4, 4], [..., 4, 4], weight float or [...]
+    -> [..., 4, 4]
 
     Translation linear, rotation ``R_a exp(weight * log(R_a^T R_b))`` (SLERP).
     """
-    R_a, R_b = T_a[:3, :3], T_b[:3, :3]
-    R = R_a @ so3_exp(weight * so3_log(R_a.transpose(0, 1) @ R_b))
-    t = (1.0 - weight) * T_a[:3, 3] + weight * T_b[:3, 3]
+    weight = torch.as_tensor(weight, dtype=T_a.dtype, device=T_a.device)[..., None]  # [..., 1]
+    R_a, R_b = T_a[..., :3, :3], T_b[..., :3, :3]
+    R = R_a @ so3_exp(weight * so3_log(R_a.transpose(-1, -2) @ R_b))
+    t = (1.0 - weight) * T_a[..., :3, 3] + weight * T_b[..., :3, 3]
     return se3_from_rt(R, t)
