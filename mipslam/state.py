@@ -330,9 +330,7 @@ class SLAMState:
 
     def keyframe_poses(self) -> torch.Tensor:
         """Current poses of all keyframes, by keyframe id.  -> [K, 4, 4] float64"""
-        if not self.keyframe_frames:
-            return torch.zeros(0, 4, 4, dtype=torch.float64)
-        return torch.stack([self.frames.pose(p) for p in self.keyframe_frames])
+        return self.frames.poses_at(torch.tensor(self.keyframe_frames, dtype=torch.int64))
 
     def set_poses(self, T_wc: torch.Tensor) -> None:
         """Every frame takes its pose from ``T_wc`` [F, 4, 4] (as :meth:`poses` returned it): undoes a correction
@@ -363,12 +361,10 @@ class SLAMState:
         if not changed:
             return self.gaussian_map.transform_by_anchor(corrections) if move_map else 0
         changed_ids = torch.tensor(changed, dtype=torch.bool)
+        positions = torch.tensor(self.keyframe_frames, dtype=torch.int64)  # keyframe id -> row
+        self.frames.set_poses_at(positions[changed_ids], T_new[changed_ids])
         keyframe_ids = self.frames.column("keyframe_id")
         references = self.frames.column("reference_keyframe")
-        keyframe_rows = torch.nonzero(keyframe_ids >= 0).flatten()
-        keyframe_rows = keyframe_rows[changed_ids[keyframe_ids[keyframe_rows]]]
-        if len(keyframe_rows):
-            self.frames.set_poses_at(keyframe_rows, T_new[keyframe_ids[keyframe_rows]])
         # the other frames whose reference keyframe r, or the next one n, moved: [M] rows
         last = len(changed) - 1
         has_next = (references >= 0) & (references < last)
@@ -381,7 +377,6 @@ class SLAMState:
             T = corrections[r] @ T_wc
             between = has_next[rows]  # frames before the newest keyframe: interpolated towards n
             if bool(between.any()):
-                positions = torch.tensor(self.keyframe_frames, dtype=torch.int64)
                 rb, kb = r[between], rows[between]
                 start, end = positions[rb], positions[rb + 1]
                 weight = (kb - start).to(torch.float64) / (end - start).to(torch.float64)
