@@ -25,6 +25,7 @@ import json
 import logging
 import math
 import shutil
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -180,7 +181,8 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
              depth_holes: float = 0.0, exposure_jitter: float = 0.0, laps: int = 1,
              fov_deg: float = DEFAULT_FOV_DEG, trajectory_start_s: float = 0.0, motion_blur: float = 0.0,
              blur_samples: int = 8, depth_delay: float = 0.0, rolling_shutter: float = 0.0,
-             depth_radial_bias: float = 0.0, overwrite: bool = False) -> Path:
+             depth_radial_bias: float = 0.0, depth_baseline: float = 0.0, depth_focal_ratio: float = 1.0,
+             overwrite: bool = False) -> Path:
     """Render a procedural RGB-D sequence with exact ground truth into ``out_dir``.
 
     layout: "replica" | "tum" (the CLI's ``--format``); trajectory: one of :data:`TRAJECTORIES`, or the
@@ -200,6 +202,10 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
     global shutter; up to 1), in ROLLING_SHUTTER_BANDS bands of rows, each with its own pose;
     depth_radial_bias: relative depth error at the middle of the image's edges, growing as r^2 from 0 at the
     centre (:mod:`data_synth.sensor`; -0.1 to 0.1);
+    depth_baseline, depth_focal_ratio: the depth image is a second camera's, ``depth_baseline`` metres along the
+    colour camera's x axis, with ``depth_focal_ratio`` times its focal length (same size and principal point),
+    written pixel for pixel as if registered to the colour image, as by a Kinect whose depth is not registered
+    (0 and 1 = registered);
     overwrite: replace an earlier data_synth folder.
     Same arguments give byte-identical folders. Returns the folder's path.
     Raises ConfigError for invalid arguments, DatasetError when a file cannot be written.
@@ -228,6 +234,8 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
     # below half an interval: a reader pairs each colour image with the nearest depth image
     depth_delay = _require_float("depth_delay", depth_delay, 0.0, 0.5, high_open=True)
     rolling_shutter = _require_float("rolling_shutter", rolling_shutter, 0.0, 1.0)
+    depth_baseline = _require_float("depth_baseline", depth_baseline, -0.2, 0.2)
+    depth_focal_ratio = _require_float("depth_focal_ratio", depth_focal_ratio, 0.5, 2.0)
     if replay_file is not None:
         if laps != 1:
             raise ConfigError(f"laps={laps} applies only to the 'loop' trajectory, not a replayed file")
@@ -246,6 +254,10 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
     scene_dict = json.loads(json.dumps(make_scene(seed).to_dict()))
     scene = Scene.from_dict(scene_dict)
     intrinsics = default_intrinsics(width, height, fov_deg)
+    registered = depth_baseline == 0 and depth_focal_ratio == 1
+    depth_intrinsics = replace(intrinsics, fx=intrinsics.fx * depth_focal_ratio, fy=intrinsics.fy * depth_focal_ratio)
+    T_cd = np.eye(4)
+    T_cd[0, 3] = depth_baseline  # the depth camera in the colour camera's frame
     depth_scale = DEPTH_SCALE[layout]
     exposure = exposure_parameters(seed, frames, sensor.exposure_jitter)
     logger.info("data_synth: %d %s frames of %dx%d (seed %d, %dx%d supersampling) into %s",
@@ -264,8 +276,9 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
                                          rolling_shutter)
         else:
             color, depth = render_view(scene, T_wc, intrinsics, supersample=supersample)
-        if depth is None or depth_delay > 0:  # depth reads pixel-centre rays alone: the same at any supersampling
-            depth = render_view(scene, pose_at(poses, i, depth_delay), intrinsics, supersample=1)[1]
+        if depth is None or depth_delay > 0 or not registered:  # pixel-centre rays alone: the same at any supersampling
+            depth_pose = np.asarray(pose_at(poses, i, depth_delay), dtype=np.float64) @ T_cd
+            depth = render_view(scene, depth_pose, depth_intrinsics, supersample=1)[1]
         if sensor.exposure_jitter > 0:
             color = apply_exposure(color, *exposure[i])
         depth = apply_depth_effects(depth, sensor, seed, i)
@@ -315,6 +328,7 @@ def generate(out_dir: str | Path, *, layout: str = "replica", trajectory: str = 
         "trajectory_options": trajectory_options,
         "render": {"supersample": supersample, "fov_deg": fov_deg, "motion_blur": motion_blur,
                    "blur_samples": blur_samples, "depth_delay": depth_delay, "rolling_shutter": rolling_shutter,
+                   "depth_baseline": depth_baseline, "depth_focal_ratio": depth_focal_ratio,
                    "color": "mean of S x S stratified rays over each pixel's unit square, 8-bit rounded",
                    "depth": "camera-frame z of the pixel-centre ray's hit"},
     }

@@ -223,6 +223,11 @@ def _build_parser() -> argparse.ArgumentParser:
                     help="depth too far by B (relative) at the image's edges, 2B at its corners, 0 at its centre")
     sy.add_argument("--rolling-shutter", type=float, default=0.0, metavar="F",
                     help="colour rows read out top to bottom over F frame intervals (0 = a global shutter)")
+    sy.add_argument("--depth-baseline", type=float, default=0.0, metavar="M",
+                    help="depth from a second camera M metres along the colour camera's x axis, not registered to "
+                         "the colour image (a raw Kinect's depth; 0 = registered)")
+    sy.add_argument("--depth-focal-ratio", type=float, default=1.0, metavar="R",
+                    help="that depth camera's focal length over the colour camera's (1 = the same)")
     sy.add_argument("--depth-delay", type=float, default=0.0, metavar="F",
                     help="depth taken F (< 0.5) frame intervals after the colour, as unsynchronised streams; the TUM "
                          "layout's depth.txt gives the later time (0 = together)")
@@ -684,7 +689,8 @@ def _cmd_synth(args) -> int:
         frames=args.frames, seed=args.seed, supersample=args.supersample, laps=args.laps,
         depth_noise=args.depth_noise, depth_holes=args.depth_holes, exposure_jitter=args.exposure_jitter,
         trajectory_start_s=args.trajectory_start, motion_blur=args.motion_blur, depth_delay=args.depth_delay,
-        rolling_shutter=args.rolling_shutter, depth_radial_bias=args.depth_radial_bias, overwrite=args.overwrite,
+        rolling_shutter=args.rolling_shutter, depth_radial_bias=args.depth_radial_bias,
+        depth_baseline=args.depth_baseline, depth_focal_ratio=args.depth_focal_ratio, overwrite=args.overwrite,
     )
     print(f"synthetic {args.format} sequence written to {out}")
     return EXIT_OK

@@ -86,6 +86,12 @@ def test_trajectory_names_and_argument_errors():
         trajectory_poses("spin", 19)
 
 
+@pytest.mark.parametrize("key,value", [("depth_baseline", 0.5), ("depth_focal_ratio", 3.0), ("depth_focal_ratio", 0.0)])
+def test_an_unregistered_depth_camera_out_of_range_is_refused(tmp_path, key, value):
+    with pytest.raises(ConfigError, match=key):
+        data_synth.generate(tmp_path / "seq", width=16, height=12, frames=2, **{key: value})
+
+
 @pytest.mark.parametrize("frames,laps", [(12, 1), (100, 1), (301, 1), (101, 2), (721, 3)])
 def test_loop_returns_exactly_to_its_start(frames, laps):
     poses = trajectory_poses("loop", frames, laps=laps)
