@@ -86,6 +86,12 @@ class DatasetConfig:
     # depth nearest) are undistorted at the dataset boundary with the same fx..cy. Unset or [] = none.
     distortion: tuple[float, ...] | None = None
     association_tolerance_s: float = 0.02  # seconds; TUM rgb-depth-groundtruth association
+    # Depth not registered to colour (a raw Kinect's): the depth camera's fx, fy, cx, cy at its images' resolution,
+    # and its pose in the colour camera's frame, [tx, ty, tz] metres or [tx, ty, tz, rx, ry, rz] with a rotation
+    # vector in radians. Depth is moved into the colour camera as it is read (mipslam/datasets/images.py
+    # DepthRegistration). Unset or [] = registered (the depth camera is the colour camera).
+    depth_intrinsics: tuple[float, ...] | None = None
+    depth_extrinsics: tuple[float, ...] | None = None
     # Seconds a rolling-shutter colour camera takes to read its rows, top to bottom, in [0, 0.1] (0 = a global
     # shutter); each row is moved to the frame's instant with the tracked motion (docs/tracking.md).
     rolling_shutter_readout_s: float = 0.0
@@ -113,6 +119,16 @@ class DatasetConfig:
         _check(self.distortion is None or all(math.isfinite(v) for v in self.distortion), "dataset.distortion",
                "must be finite numbers")
         _check(self.depth_noise_power >= 0, "dataset.depth_noise_power", "must be >= 0 (0 = metres)")
+        _check(self.depth_intrinsics is None or len(self.depth_intrinsics) in (0, 4), "dataset.depth_intrinsics",
+               "must be [] or the depth camera's [fx, fy, cx, cy] in pixels")
+        _check(self.depth_intrinsics is None or len(self.depth_intrinsics) == 0
+               or (all(math.isfinite(v) for v in self.depth_intrinsics) and min(self.depth_intrinsics[:2]) > 0),
+               "dataset.depth_intrinsics", "must be finite, with fx and fy positive")
+        _check(self.depth_extrinsics is None or len(self.depth_extrinsics) in (0, 3, 6), "dataset.depth_extrinsics",
+               "must be [] or the depth camera's pose in the colour camera's frame: [tx, ty, tz] metres or "
+               "[tx, ty, tz, rx, ry, rz] (rotation vector, radians)")
+        _check(self.depth_extrinsics is None or all(math.isfinite(v) for v in self.depth_extrinsics),
+               "dataset.depth_extrinsics", "must be finite numbers")
 
 
 @dataclass(frozen=True)

@@ -511,6 +511,81 @@ def test_dataset_distortion_undistorts_frames_and_rejects_bad_coefficients(tmp_p
         DatasetConfig(distortion=(0.1, float("nan"), 0.0, 0.0))
 
 
+# ----------------------------------------------------------------------------- depth not registered to colour
+
+def test_depth_registration_with_the_colour_camera_itself_changes_nothing():
+    from mipslam.datasets.images import DepthRegistration
+
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.5, 3.0, (24, 32)).astype(np.float32)
+    depth[3, 4] = 0.0  # no measurement stays none
+    camera = (30.0, 31.0, 15.5, 11.5)
+    out = DepthRegistration(camera, np.eye(4), camera, (32, 24))(depth)
+    np.testing.assert_array_equal(out, depth)
+
+
+def test_depth_registration_moves_a_depth_cameras_images_onto_the_colour_cameras(tmp_path):
+    """data_synth renders the same frames with registered depth and with the depth of a second camera 3 cm aside
+    with 1.1x the focal length (a raw Kinect's); registered with that calibration, the second agrees with the
+    first wherever both measure, and the nearer surface wins where the moved points overlap."""
+    import data_synth
+    from mipslam.datasets.images import DepthRegistration
+
+    common = dict(layout="tum", trajectory="loop", width=64, height=48, frames=2, seed=3, supersample=1)
+    data_synth.generate(tmp_path / "registered", **common)
+    data_synth.generate(tmp_path / "raw", depth_baseline=0.03, depth_focal_ratio=1.1, **common)
+    def synthetic(name, **kw):
+        return make_sequence(DatasetConfig(kind="synthetic", path=str(tmp_path / name), **kw))
+
+    registered, raw = synthetic("registered"), synthetic("raw")
+    k = raw.intrinsics
+    depth_camera = (1.1 * k.fx, 1.1 * k.fy, k.cx, k.cy)
+    moved = synthetic("raw", depth_intrinsics=depth_camera, depth_extrinsics=(0.03, 0.0, 0.0))
+    truth, unregistered, depth = registered[1].depth.numpy(), raw[1].depth.numpy(), moved[1].depth.numpy()
+    both = (truth > 0) & (depth > 0)
+    assert both.mean() > 0.7  # the narrower depth camera sees most of the colour image
+    error = np.abs(depth[both] - truth[both]) / truth[both]
+    error_unregistered = np.abs(unregistered[both] - truth[both]) / truth[both]
+    assert np.percentile(error, 99) < 0.005 and np.median(error) < 0.3 * np.median(error_unregistered)
+    # a rotation vector in the extrinsics: a camera turned by 2 degrees about y
+    T_cd = np.eye(4)
+    T_cd[:3, :3] = cv2.Rodrigues(np.array([0.0, np.radians(2.0), 0.0]))[0]
+    turned = DepthRegistration(depth_camera, T_cd, (k.fx, k.fy, k.cx, k.cy), (k.width, k.height))
+    rotated = synthetic("raw", depth_intrinsics=depth_camera, depth_extrinsics=(0.0, 0.0, 0.0, 0.0, np.radians(2.0), 0.0))
+    np.testing.assert_array_equal(rotated[1].depth.numpy(), turned(unregistered))
+
+
+def test_depth_registration_keeps_the_nearest_surface():
+    from mipslam.datasets.images import DepthRegistration
+
+    depth = np.full((10, 10), 2.0, np.float32)
+    depth[:, 5] = 1.0  # a near pole in front of a wall
+    camera = (10.0, 10.0, 4.5, 4.5)
+    T_cd = np.eye(4)
+    T_cd[0, 3] = 0.1  # the depth camera 10 cm to the right: the pole moves 1 px, the wall 0.5 px, and covers it
+    out = DepthRegistration(camera, T_cd, camera, (10, 10))(depth)
+    assert np.all(out[:, 6] == 1.0) and set(np.unique(out)) <= {0.0, 1.0, 2.0}
+
+
+def test_depth_of_another_size_needs_the_depth_camera_and_bad_calibrations_are_refused(tmp_path):
+    write_tum(tmp_path / "seq", n=2)
+    for path in sorted((tmp_path / "seq" / "depth").iterdir()):
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(path), cv2.resize(image, (image.shape[1] // 2, image.shape[0] // 2),
+                                          interpolation=cv2.INTER_NEAREST))
+    with pytest.raises(DatasetError, match="registered at the same size"):
+        TUMSequence(tmp_path / "seq", tum_cfg(tmp_path / "seq"))[0]
+    i = TUMSequence(tmp_path / "seq", tum_cfg(tmp_path / "seq")).intrinsics
+    half = (i.fx / 2, i.fy / 2, (i.cx - 0.5) / 2, (i.cy - 0.5) / 2)
+    frame = TUMSequence(tmp_path / "seq", tum_cfg(tmp_path / "seq", depth_intrinsics=half))[0]
+    assert frame.depth.shape == frame.color.shape[:2] and float((frame.depth > 0).float().mean()) > 0.95
+    for bad in ({"depth_intrinsics": (500.0, 500.0, 320.0)}, {"depth_intrinsics": (0.0, 500.0, 320.0, 240.0)},
+                {"depth_extrinsics": (0.02, 0.0)}, {"depth_extrinsics": (0.02, 0.0, float("inf"))}):
+        key = next(iter(bad))
+        with pytest.raises(ConfigError, match=f"dataset.{key}"):
+            DatasetConfig(**bad)
+
+
 # ----------------------------------------------------------------------------- the frame cache
 
 def test_frame_cache_reads_ahead_once_and_gives_the_same_frames(tmp_path):

@@ -14,10 +14,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Literal, Protocol, runtime_checkable
 
+import cv2
 import numpy as np
 import torch
 
-from mipslam.datasets.images import LensUndistortion, downscale_color, downscale_depth, read_color, read_depth
+from mipslam.datasets.images import DepthRegistration, LensUndistortion, downscale_color, downscale_depth, read_color, read_depth
 from mipslam.errors import DatasetError
 from mipslam.types import Frame, Intrinsics
 
@@ -123,6 +124,8 @@ class SequenceBase:
         downscale: int,
         where: Path,
         distortion: tuple[float, ...] = (),  # (k1, k2, p1, p2[, k3]) of the images on disk; () = none
+        depth_intrinsics: tuple[float, ...] = (),  # fx, fy, cx, cy of a depth camera not registered to colour
+        depth_extrinsics: tuple[float, ...] = (),  # its pose in the colour camera: [tx, ty, tz(, rx, ry, rz)]
     ) -> None:
         keep = select_indices(len(records), first_frame, stride, max_frames, where)
         self._records = [records[k] for k in keep]
@@ -156,6 +159,8 @@ class SequenceBase:
         self.distortion = tuple(float(v) for v in distortion)
         self._undistortion = (LensUndistortion((fx, fy, cx, cy), self.distortion, (width, height))
                               if any(v != 0.0 for v in self.distortion) else None)
+        self._registration = depth_registration(depth_intrinsics, depth_extrinsics, (fx, fy, cx, cy),
+                                                (width, height))
 
     def _delivered_intrinsics(self, full: Intrinsics) -> Intrinsics:
         d = self.downscale
@@ -205,7 +210,9 @@ class SequenceBase:
                 f"colour image is {color.shape[1]}x{color.shape[0]} but the sequence is {full.width}x{full.height}; "
                 "all frames must have the size of the first one (or of the configured width/height)",
             )
-        if depth.shape != color.shape[:2]:
+        if self._registration is not None:  # a depth camera of its own: any size, moved into the colour camera
+            depth = self._registration(depth)
+        elif depth.shape != color.shape[:2]:
             raise DatasetError(
                 record.depth_path,
                 f"depth image is {depth.shape[1]}x{depth.shape[0]} but its colour image {record.color_path.name} is "
@@ -213,7 +220,8 @@ class SequenceBase:
             )
         if self._undistortion is not None:
             color = self._undistortion.color(color)
-            depth = self._undistortion.depth(depth)
+            if self._registration is None:  # the coefficients are the colour camera's
+                depth = self._undistortion.depth(depth)
         if self.downscale > 1:
             color = downscale_color(color, self.downscale)
             depth = downscale_depth(depth, self.downscale)
@@ -233,6 +241,24 @@ class SequenceBase:
     def __repr__(self) -> str:
         i = self.intrinsics
         return f"{type(self).__name__}({self.name!r}, {len(self)} frames, {i.width}x{i.height}, root={str(self.root)!r})"
+
+
+def depth_registration(depth_intrinsics: tuple[float, ...], depth_extrinsics: tuple[float, ...],
+                       color_camera: tuple[float, float, float, float],
+                       size: tuple[int, int]) -> DepthRegistration | None:
+    """The registration of depth images from a camera of their own (``dataset.depth_intrinsics`` fx, fy, cx, cy;
+    ``dataset.depth_extrinsics`` [tx, ty, tz] metres, optionally then a rotation vector [rx, ry, rz] radians: the
+    depth camera's pose in the colour camera's frame) into the colour camera ``color_camera`` of ``size``; None when
+    neither is given (depth registered to colour)."""
+    if not depth_intrinsics and not depth_extrinsics:
+        return None
+    camera = tuple(depth_intrinsics) if depth_intrinsics else tuple(color_camera)
+    T_cd = np.eye(4)
+    if depth_extrinsics:
+        T_cd[:3, 3] = depth_extrinsics[:3]
+        if len(depth_extrinsics) == 6:
+            T_cd[:3, :3] = cv2.Rodrigues(np.asarray(depth_extrinsics[3:], dtype=np.float64))[0]
+    return DepthRegistration(camera, T_cd, color_camera, size)
 
 
 def checked_frame_index(index, length: int) -> int:

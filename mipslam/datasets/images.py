@@ -28,6 +28,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 
 from mipslam.errors import DatasetError
 
@@ -217,3 +218,80 @@ class LensUndistortion:
         """depth [H, W] metres -> [H, W] (nearest sample; 0 outside the source image)"""
         return cv2.remap(depth, self.map_x, self.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
                          borderValue=0)
+
+
+class DepthRegistration:
+    """Moves depth images taken by a second camera into the colour camera (depth not registered to colour: a raw
+    Kinect's, whose depth camera sits a few centimetres beside the colour camera with another focal length).
+
+    ``depth_camera`` = (fx, fy, cx, cy) px of the depth images on disk, ``T_cd`` [4, 4] float64 the depth camera's
+    pose in the colour camera's frame (metres), ``color_camera`` = (fx, fy, cx, cy) px and ``size`` = (width,
+    height) of the colour images. Each depth pixel's point ``X_c = T_cd K_d^-1 [u, v, 1] z`` is projected into the
+    colour image and written, as its colour-frame depth, to every colour pixel whose centre its footprint covers
+    (at least the nearest one), the nearest surface winning where several land: so no depth mixes two surfaces,
+    and a depth grid finer or coarser than the colour grid leaves no holes inside a surface. Colour pixels that no
+    depth point reaches (the part of the view the depth camera does not see, and what it sees behind an occluding
+    edge from its other position) get 0, no measurement. Lens distortion of the depth camera is not modelled.
+    """
+
+    MAX_FOOTPRINT_PX = 4  # colour pixels per side one depth pixel may fill (a depth camera at most 4x finer)
+
+    def __init__(self, depth_camera: tuple[float, float, float, float], T_cd: np.ndarray,
+                 color_camera: tuple[float, float, float, float], size: tuple[int, int]):
+        self.depth_camera = tuple(float(v) for v in depth_camera)
+        self.color_camera = tuple(float(v) for v in color_camera)
+        self.T_cd = np.asarray(T_cd, dtype=np.float64)
+        self.width, self.height = int(size[0]), int(size[1])
+        self._rays: dict[tuple[int, int], torch.Tensor] = {}
+
+    def _depth_rays(self, height: int, width: int) -> torch.Tensor:
+        """Rays (x / z, y / z, 1) of the depth camera's pixel centres, [height * width, 3] float32."""
+        rays = self._rays.get((height, width))
+        if rays is None:
+            fx, fy, cx, cy = self.depth_camera
+            v, u = torch.meshgrid(torch.arange(height, dtype=torch.float32), torch.arange(width, dtype=torch.float32),
+                                  indexing="ij")
+            rays = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], dim=-1).reshape(-1, 3)
+            self._rays[(height, width)] = rays
+        return rays
+
+    def __call__(self, depth: np.ndarray) -> np.ndarray:
+        """depth [H_d, W_d] metres in the depth camera (0 = none) -> [height, width] metres in the colour camera"""
+        z = torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32)).reshape(-1)
+        valid = torch.isfinite(z) & (z > 0)
+        X_d = self._depth_rays(*depth.shape)[valid] * z[valid, None]  # [N, 3] depth camera frame
+        T = torch.from_numpy(self.T_cd).to(torch.float32)
+        X_c = X_d @ T[:3, :3].T + T[:3, 3]  # [N, 3] colour camera frame
+        front = X_c[:, 2] > 1e-6
+        X_c, z_d = X_c[front], z[valid][front]
+        z_c = X_c[:, 2]
+        fx, fy, cx, cy = self.color_camera
+        u, v = fx * X_c[:, 0] / z_c + cx, fy * X_c[:, 1] / z_c + cy
+        # half the footprint of a depth pixel in colour pixels: it spans z_d / fx_d metres at its depth
+        half_u = 0.5 * fx * z_d / (self.depth_camera[0] * z_c)
+        half_v = 0.5 * fy * z_d / (self.depth_camera[1] * z_c)
+        out = torch.full((self.height * self.width,), math.inf, dtype=torch.float32)
+        first_u, last_u = _covered_centres(u, half_u)
+        first_v, last_v = _covered_centres(v, half_v)
+        span_u = int((last_u - first_u).max()) + 1 if len(u) else 0
+        span_v = int((last_v - first_v).max()) + 1 if len(v) else 0
+        for dv in range(span_v):
+            for du in range(span_u):
+                col, row = first_u + du, first_v + dv
+                inside = ((col <= last_u) & (row <= last_v) & (col >= 0) & (col < self.width) & (row >= 0)
+                          & (row < self.height))
+                out.scatter_reduce_(0, row[inside] * self.width + col[inside], z_c[inside], reduce="amin")
+        out[torch.isinf(out)] = 0.0
+        return out.reshape(self.height, self.width).numpy()
+
+
+def _covered_centres(x: torch.Tensor, half: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """First and last integer pixel centre in ``[x - half, x + half]`` (the nearest one where none is), at most
+    ``DepthRegistration.MAX_FOOTPRINT_PX`` of them.  [N] float32 each -> [N] int64 each"""
+    first = torch.ceil(x - half)
+    last = torch.floor(x + half)
+    none = last < first
+    nearest = torch.round(x)
+    first = torch.where(none, nearest, first)
+    last = torch.where(none, nearest, torch.minimum(last, first + DepthRegistration.MAX_FOOTPRINT_PX - 1))
+    return first.to(torch.int64), last.to(torch.int64)

@@ -181,6 +181,7 @@ class ReplicaSequence(SequenceBase):
             expected_size=expected_size, size_source=source, depth_scale=depth_scale,
             first_frame=cfg.first_frame, stride=cfg.stride, max_frames=cfg.max_frames, downscale=cfg.downscale,
             where=results, distortion=tuple(cfg.distortion or ()),
+            depth_intrinsics=tuple(cfg.depth_intrinsics or ()), depth_extrinsics=tuple(cfg.depth_extrinsics or ()),
         )
 
     @classmethod

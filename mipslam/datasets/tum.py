@@ -265,6 +265,7 @@ class TUMSequence(SequenceBase):
             depth_scale=cfg.depth_scale if cfg.depth_scale is not None else TUM_DEPTH_SCALE,
             first_frame=cfg.first_frame, stride=cfg.stride, max_frames=cfg.max_frames, downscale=cfg.downscale,
             where=rgb_list, distortion=tuple(cfg.distortion or ()),
+            depth_intrinsics=tuple(cfg.depth_intrinsics or ()), depth_extrinsics=tuple(cfg.depth_extrinsics or ()),
         )
 
     @classmethod
