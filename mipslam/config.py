@@ -129,6 +129,9 @@ class DatasetConfig:
                "[tx, ty, tz, rx, ry, rz] (rotation vector, radians)")
         _check(self.depth_extrinsics is None or all(math.isfinite(v) for v in self.depth_extrinsics),
                "dataset.depth_extrinsics", "must be finite numbers")
+        _check(not (self.kind.startswith("realsense") and (self.depth_intrinsics or self.depth_extrinsics)),
+               "dataset.depth_intrinsics", "does not apply to a RealSense camera or recording: librealsense registers "
+               "its depth to colour; unset dataset.depth_intrinsics and dataset.depth_extrinsics")
 
 
 @dataclass(frozen=True)

@@ -584,6 +584,8 @@ def test_depth_of_another_size_needs_the_depth_camera_and_bad_calibrations_are_r
         key = next(iter(bad))
         with pytest.raises(ConfigError, match=f"dataset.{key}"):
             DatasetConfig(**bad)
+    with pytest.raises(ConfigError, match="librealsense registers"):
+        DatasetConfig(kind="realsense", depth_extrinsics=(0.025, 0.0, 0.0))
 
 
 # ----------------------------------------------------------------------------- the frame cache
