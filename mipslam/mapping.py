@@ -12,7 +12,8 @@ On each keyframe (docs/design.md "Losses" and "Model only what a scene requires"
    keyframe drawn with the run's generator from the others on odd steps. Loss per view:
    ``alpha_c |exposure(I) - I_gt| + (1 - alpha_c) |D - D_gt|`` (means over valid pixels)
    ``+ opacity_weight * mean(1 - A) + isotropy_weight * isotropy(scales) + lambda_freq * L_freq(I, I_gt)``
-   (``A`` the rendered opacity over pixels with valid depth; with ``depth_normalise`` the depth term compares
+   (``A`` the rendered opacity over pixels with valid depth, and ``L_freq`` too where it moves the geometry
+   (``freq_moves_geometry`` "always"); with ``depth_normalise`` the depth term compares
    ``D / A`` and no longer raises opacity itself); each view renders the
    Gaussians that can reach it from its starting pose (``mipslam.rendering.FRUSTUM_MARGIN``), the isotropy term
    covers the whole map;
@@ -294,8 +295,11 @@ class Mapper:
         if cfg.lambda_freq > 0:
             if appearance:  # the same values, whose gradient reaches the colours alone (MappingConfig)
                 color = apply_affine_exposure(out.color_appearance, view.exposure[0], view.exposure[1])
+            # Moving the geometry, it reads only pixels with depth: where the sensor measured none the view holds
+            # no geometry to sharpen, and the term would pull the map towards the colour there.
+            mask = masks.color & masks.depth if cfg.freq_moves_geometry == "always" else masks.color
             loss = loss + cfg.lambda_freq * frequency_loss(color, view.color, patch_size=cfg.freq_patch,
-                                                           alpha=cfg.freq_alpha, mask=masks.color)
+                                                           alpha=cfg.freq_alpha, mask=mask)
         return loss
 
     def optimize(self, gmap: GaussianMap, optimizer: GaussianOptimizer, views: list[MappingView], iterations: int,
