@@ -547,6 +547,15 @@ def test_depth_registration_moves_a_depth_cameras_images_onto_the_colour_cameras
     error = np.abs(depth[both] - truth[both]) / truth[both]
     error_unregistered = np.abs(unregistered[both] - truth[both]) / truth[both]
     assert np.percentile(error, 99) < 0.005 and np.median(error) < 0.3 * np.median(error_unregistered)
+    # read at half the resolution: the depth is downscaled first, then registered at the delivered resolution
+    half_truth = synthetic("registered", downscale=2)[1].depth.numpy()
+    half = synthetic("raw", downscale=2, depth_intrinsics=depth_camera, depth_extrinsics=(0.03, 0.0, 0.0))[1].depth
+    assert half.shape == half_truth.shape
+    both = (half.numpy() > 0) & (half_truth > 0)
+    assert both.mean() > 0.6
+    half_unregistered = synthetic("raw", downscale=2)[1].depth.numpy()
+    relative = np.abs(half.numpy()[both] - half_truth[both]) / half_truth[both]
+    assert np.median(relative) < 0.5 * np.median(np.abs(half_unregistered[both] - half_truth[both]) / half_truth[both])
     # a rotation vector in the extrinsics: a camera turned by 2 degrees about y
     T_cd = np.eye(4)
     T_cd[:3, :3] = cv2.Rodrigues(np.array([0.0, np.radians(2.0), 0.0]))[0]

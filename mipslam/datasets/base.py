@@ -159,8 +159,9 @@ class SequenceBase:
         self.distortion = tuple(float(v) for v in distortion)
         self._undistortion = (LensUndistortion((fx, fy, cx, cy), self.distortion, (width, height))
                               if any(v != 0.0 for v in self.distortion) else None)
-        self._registration = depth_registration(depth_intrinsics, depth_extrinsics, (fx, fy, cx, cy),
-                                                (width, height))
+        # unregistered depth is downscaled first and registered at the delivered resolution (d^2 fewer points)
+        self._registration = depth_registration(depth_intrinsics, depth_extrinsics, self.full_intrinsics,
+                                                self.intrinsics, self.downscale)
 
     def _delivered_intrinsics(self, full: Intrinsics) -> Intrinsics:
         d = self.downscale
@@ -211,7 +212,7 @@ class SequenceBase:
                 "all frames must have the size of the first one (or of the configured width/height)",
             )
         if self._registration is not None:  # a depth camera of its own: any size, moved into the colour camera
-            depth = self._registration(depth)
+            depth = self._registration(downscale_depth(depth, self.downscale))
         elif depth.shape != color.shape[:2]:
             raise DatasetError(
                 record.depth_path,
@@ -224,7 +225,8 @@ class SequenceBase:
                 depth = self._undistortion.depth(depth)
         if self.downscale > 1:
             color = downscale_color(color, self.downscale)
-            depth = downscale_depth(depth, self.downscale)
+            if self._registration is None:
+                depth = downscale_depth(depth, self.downscale)
         T_wc = None
         if self._gt_T_wc is not None and self._gt_valid[index]:
             T_wc = self._gt_T_wc[index].clone()
@@ -244,21 +246,26 @@ class SequenceBase:
 
 
 def depth_registration(depth_intrinsics: tuple[float, ...], depth_extrinsics: tuple[float, ...],
-                       color_camera: tuple[float, float, float, float],
-                       size: tuple[int, int]) -> DepthRegistration | None:
-    """The registration of depth images from a camera of their own (``dataset.depth_intrinsics`` fx, fy, cx, cy;
-    ``dataset.depth_extrinsics`` [tx, ty, tz] metres, optionally then a rotation vector [rx, ry, rz] radians: the
-    depth camera's pose in the colour camera's frame) into the colour camera ``color_camera`` of ``size``; None when
-    neither is given (depth registered to colour)."""
+                       color_on_disk: Intrinsics, delivered: Intrinsics, downscale: int) -> DepthRegistration | None:
+    """The registration of depth images from a camera of their own (``dataset.depth_intrinsics`` fx, fy, cx, cy at
+    its images' resolution, default the colour camera's ``color_on_disk``; ``dataset.depth_extrinsics`` [tx, ty, tz]
+    metres, optionally then a rotation vector [rx, ry, rz] radians: the depth camera's pose in the colour camera's
+    frame) into the ``delivered`` colour camera, for depth images already downscaled by ``downscale``; None when
+    neither key is given (depth registered to colour)."""
     if not depth_intrinsics and not depth_extrinsics:
         return None
-    camera = tuple(depth_intrinsics) if depth_intrinsics else tuple(color_camera)
+    fx, fy, cx, cy = (tuple(depth_intrinsics) if depth_intrinsics else
+                      (color_on_disk.fx, color_on_disk.fy, color_on_disk.cx, color_on_disk.cy))
+    on_disk = Intrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=color_on_disk.width, height=color_on_disk.height)
+    depth_camera = on_disk.scaled(1.0 / downscale) if downscale > 1 else on_disk
     T_cd = np.eye(4)
     if depth_extrinsics:
         T_cd[:3, 3] = depth_extrinsics[:3]
         if len(depth_extrinsics) == 6:
             T_cd[:3, :3] = cv2.Rodrigues(np.asarray(depth_extrinsics[3:], dtype=np.float64))[0]
-    return DepthRegistration(camera, T_cd, color_camera, size)
+    return DepthRegistration((depth_camera.fx, depth_camera.fy, depth_camera.cx, depth_camera.cy), T_cd,
+                             (delivered.fx, delivered.fy, delivered.cx, delivered.cy),
+                             (delivered.width, delivered.height))
 
 
 def checked_frame_index(index, length: int) -> int:
