@@ -12,8 +12,9 @@ On each keyframe (docs/design.md "Losses" and "Model only what a scene requires"
    keyframe drawn with the run's generator from the others on odd steps. Loss per view:
    ``alpha_c |exposure(I) - I_gt| + (1 - alpha_c) |D - D_gt|`` (means over valid pixels)
    ``+ opacity_weight * mean(1 - A) + isotropy_weight * isotropy(scales) + lambda_freq * L_freq(I, I_gt)``
-   (``A`` the rendered opacity over pixels with valid depth, and ``L_freq`` too where it moves the geometry
-   (``freq_moves_geometry`` "always"); with ``depth_normalise`` the depth term compares
+   (``A`` the rendered opacity over pixels with valid depth; ``L_freq``, where it moves the geometry
+   (``freq_moves_geometry`` "always"), over pixels within ``FREQ_DEPTH_REACH_PX`` of a valid depth); with
+   ``depth_normalise`` the depth term compares
    ``D / A`` and no longer raises opacity itself); each view renders the
    Gaussians that can reach it from its starting pose (``mipslam.rendering.FRUSTUM_MARGIN``), the isotropy term
    covers the whole map;
@@ -69,6 +70,9 @@ if TYPE_CHECKING:
     from mipslam.datasets import FrameCache, RGBDSequence
     from mipslam.types import Frame
     from mipslam.state import FrameRecord, SLAMState
+
+# Where the frequency term moves the geometry it reads only pixels within this many pixels of a valid depth
+FREQ_DEPTH_REACH_PX = 2
 
 log = logging.getLogger(__name__)
 
@@ -173,6 +177,14 @@ class MappingOptions:
     @classmethod
     def from_config(cls, section: MappingConfig) -> "MappingOptions":
         return section_options(cls, section)
+
+
+def near_valid_depth(valid: torch.Tensor, reach_px: int) -> torch.Tensor:
+    """Pixels within ``reach_px`` (Chebyshev distance) of a valid depth.  valid [H, W] bool -> [H, W] bool"""
+    if reach_px <= 0:
+        return valid
+    size = 2 * reach_px + 1
+    return torch.nn.functional.max_pool2d(valid[None, None].float(), size, stride=1, padding=reach_px)[0, 0] > 0
 
 
 class Mapper:
@@ -295,9 +307,12 @@ class Mapper:
         if cfg.lambda_freq > 0:
             if appearance:  # the same values, whose gradient reaches the colours alone (MappingConfig)
                 color = apply_affine_exposure(out.color_appearance, view.exposure[0], view.exposure[1])
-            # Moving the geometry, it reads only pixels with depth: where the sensor measured none the view holds
-            # no geometry to sharpen, and the term would pull the map towards the colour there.
-            mask = masks.color & masks.depth if cfg.freq_moves_geometry == "always" else masks.color
+            # Moving the geometry, it reads only pixels with depth within FREQ_DEPTH_REACH_PX: where a region has
+            # none (a border the depth camera does not see) the view holds no geometry to sharpen, and the term
+            # would pull the map towards the colour there; a dropout inside a surface stays in.
+            mask = masks.color
+            if cfg.freq_moves_geometry == "always":
+                mask = mask & near_valid_depth(masks.depth, FREQ_DEPTH_REACH_PX)
             loss = loss + cfg.lambda_freq * frequency_loss(color, view.color, patch_size=cfg.freq_patch,
                                                            alpha=cfg.freq_alpha, mask=mask)
         return loss

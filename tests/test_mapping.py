@@ -148,17 +148,31 @@ def test_a_translucent_map_keeps_its_depth_only_with_the_normalised_depth_term(t
         assert bias > 0.02, bias  # Adam's 40 steps of 2 mm: on the way to 1 / A - 1
 
 
-def test_the_frequency_term_leaves_out_pixels_without_depth(tiny_sequence):
-    """Where the sensor measured no depth (a depth camera's blind border, a black surface) the map holds no
-    geometry of that view: the frequency term must not pull the map towards the colour there (a textured border
-    without depth cost a replayed hand-held motion 0.38 -> 1.43 cm with it; docs/robustness.md). The L1 colour term
-    still reads those pixels."""
+def test_near_valid_depth_keeps_dropouts_and_drops_regions_without_depth():
+    from mipslam.mapping import near_valid_depth
+
+    valid = torch.ones(12, 16, dtype=torch.bool)
+    valid[5, 9] = False  # a dropout inside a surface
+    valid[:, :6] = False  # a border without depth
+    near = near_valid_depth(valid, 2)
+    assert bool(near[5, 9]) and bool(near[:, 4:].all()) and not bool(near[:, :4].any())
+    assert torch.equal(near_valid_depth(valid, 0), valid)
+
+
+def test_the_frequency_term_leaves_out_regions_without_depth(tiny_sequence):
+    """Where the sensor measured no depth over a region (a depth camera's blind border) the map holds no geometry
+    of that view: where the frequency term moves the geometry it must not pull the map towards the colour there (a
+    textured border without depth cost a replayed hand-held motion 0.38 -> 1.43 cm with it; docs/robustness.md).
+    The L1 colour term still reads those pixels."""
+    from mipslam.mapping import FREQ_DEPTH_REACH_PX
+
     config, sequence, gmap, _, _ = map_of_first_frame(tiny_sequence, 40)
     frame, T_wc = sequence[0], sequence.gt_T_wc[0]
     depth = frame.depth.clone()
     depth[:, :8] = 0.0  # a border without depth
     repainted = frame.color.clone()
-    repainted[:, :8] = torch.rand(repainted[:, :8].shape, generator=torch.Generator().manual_seed(1))
+    beyond = 8 - FREQ_DEPTH_REACH_PX  # the border's columns further than the reach from any depth
+    repainted[:, :beyond] = torch.rand(repainted[:, :beyond].shape, generator=torch.Generator().manual_seed(1))
     T_cw = se3_inverse(T_wc).float()
     options = MappingOptions.from_config(config.mapping)
 
