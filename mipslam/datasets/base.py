@@ -18,7 +18,8 @@ import cv2
 import numpy as np
 import torch
 
-from mipslam.datasets.images import DepthRegistration, LensUndistortion, downscale_color, downscale_depth, read_color, read_depth
+from mipslam.datasets.images import (DepthRegistration, LensUndistortion, downscale_color, downscale_depth, read_color,
+                                     read_depth)
 from mipslam.errors import DatasetError
 from mipslam.types import Frame, Intrinsics
 
