@@ -280,13 +280,15 @@ class Mapper:
     # ------------------------------------------------------------------ optimisation
 
     def view_loss(self, gmap: GaussianMap, view: MappingView, T_cw: torch.Tensor,
-                  masks: RGBDMasks | None = None, rows: torch.Tensor | None = None) -> torch.Tensor:
+                  masks: RGBDMasks | None = None, rows: torch.Tensor | None = None,
+                  frequency_mask: torch.Tensor | None = None) -> torch.Tensor:
         """The mapping loss of one view (module docstring), differentiable w.r.t. the map and ``T_cw`` [4, 4]
         (world-to-camera, the map's dtype and device). Returns a scalar tensor.
 
         What :meth:`optimize` computes once per view and passes in: ``masks``, the view's
-        :func:`rgbd_masks` (they depend on the targets alone), and ``rows`` [M] int64, the Gaussians
-        the view can draw (:func:`frustum_indices`); the others would get zero gradients anyway.
+        :func:`rgbd_masks` (they depend on the targets alone), ``rows`` [M] int64, the Gaussians
+        the view can draw (:func:`frustum_indices`; the others would get zero gradients anyway), and
+        ``frequency_mask`` [H, W] bool, the pixels the frequency term reads (:meth:`frequency_mask`).
         """
         cfg = self.config
         g = gmap.activated(rows)
@@ -307,14 +309,10 @@ class Mapper:
         if cfg.lambda_freq > 0:
             if appearance:  # the same values, whose gradient reaches the colours alone (MappingConfig)
                 color = apply_affine_exposure(out.color_appearance, view.exposure[0], view.exposure[1])
-            # Moving the geometry, it reads only pixels with depth within FREQ_DEPTH_REACH_PX: where a region has
-            # none (a border the depth camera does not see) the view holds no geometry to sharpen, and the term
-            # would pull the map towards the colour there; a dropout inside a surface stays in.
-            mask = masks.color
-            if cfg.freq_moves_geometry == "always":
-                mask = mask & near_valid_depth(masks.depth, FREQ_DEPTH_REACH_PX)
+            if frequency_mask is None:
+                frequency_mask = self.frequency_mask(masks)
             loss = loss + cfg.lambda_freq * frequency_loss(color, view.color, patch_size=cfg.freq_patch,
-                                                           alpha=cfg.freq_alpha, mask=mask)
+                                                           alpha=cfg.freq_alpha, mask=frequency_mask)
         return loss
 
     def optimize(self, gmap: GaussianMap, optimizer: GaussianOptimizer, views: list[MappingView], iterations: int,
@@ -330,8 +328,7 @@ class Mapper:
                        for i, v in enumerate(views) if v.optimize_pose and self.config.lr_poses > 0}
         pose_optimizer = torch.optim.Adam(list(pose_deltas.values()), lr=self.config.lr_poses) if pose_deltas else None
         first = last = math.nan
-        masks: dict[int, RGBDMasks] = {}
-        rows: dict[int, torch.Tensor | None] = {}
+        inputs: dict[int, tuple[RGBDMasks, torch.Tensor | None, torch.Tensor | None]] = {}  # per view, once
         for step in range(iterations):
             if step % 2 == 0 or len(views) == 1:
                 index = 0
@@ -340,9 +337,9 @@ class Mapper:
             T_cw = T_cw_init[index]
             if index in pose_deltas:
                 T_cw = se3_exp(pose_deltas[index]) @ T_cw
-            if index not in masks:
-                masks[index], rows[index] = self._view_inputs(gmap, views[index], T_cw_init[index])
-            loss = self.view_loss(gmap, views[index], T_cw, masks[index], rows[index])
+            if index not in inputs:
+                inputs[index] = self._view_inputs(gmap, views[index], T_cw_init[index])
+            loss = self.view_loss(gmap, views[index], T_cw, *inputs[index])
             if not torch.isfinite(loss):
                 break  # never step on a non-finite loss: the map keeps its last finite state
             optimizer.zero_grad()
@@ -361,14 +358,26 @@ class Mapper:
         return first, last, refined
 
     def _view_inputs(self, gmap: GaussianMap, view: MappingView,
-                     T_cw: torch.Tensor) -> tuple[RGBDMasks, torch.Tensor | None]:
-        """A view's loss masks and the rows of the Gaussians it can draw from ``T_cw`` [4, 4] (None: all)."""
+                     T_cw: torch.Tensor) -> tuple[RGBDMasks, torch.Tensor | None, torch.Tensor | None]:
+        """A view's loss masks, the rows of the Gaussians it can draw from ``T_cw`` [4, 4] (None: all) and the
+        pixels its frequency term reads (None: no frequency term)."""
         seen = frustum_indices(gmap.means, torch.exp(gmap.log_scales.detach()), T_cw, view.intrinsics,
                                self.render_config)
         masks = view.masks
         if masks is None:
             masks = rgbd_masks(view.color, view.depth, max_depth=self.config.max_depth)
-        return masks, None if len(seen) == len(gmap) else seen
+        frequency_mask = self.frequency_mask(masks) if self.config.lambda_freq > 0 else None
+        return masks, None if len(seen) == len(gmap) else seen, frequency_mask
+
+    def frequency_mask(self, masks: RGBDMasks) -> torch.Tensor:
+        """The pixels a view's frequency term reads, from its loss ``masks``: its colour pixels, and where the term
+        moves the geometry (``freq_moves_geometry`` "always") only those within ``FREQ_DEPTH_REACH_PX`` of a valid
+        depth: a region without any (a border the depth camera does not see) holds no geometry of the view to
+        sharpen, and the term would pull the map towards its colour; a dropout inside a surface stays in.
+        -> [H, W] bool"""
+        if self.config.freq_moves_geometry != "always":
+            return masks.color
+        return masks.color & near_valid_depth(masks.depth, FREQ_DEPTH_REACH_PX)
 
     def map_keyframe(self, gmap: GaussianMap, optimizer: GaussianOptimizer, views: list[MappingView], *,
                      iterations: int, generator: torch.Generator, frame_index: int) -> MappingResult:

@@ -14,13 +14,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Literal, Protocol, runtime_checkable
 
-import cv2
 import numpy as np
 import torch
 
 from mipslam.datasets.images import (DepthRegistration, LensUndistortion, downscale_color, downscale_depth, read_color,
                                      read_depth)
 from mipslam.errors import DatasetError
+from mipslam.geometry import so3_exp
 from mipslam.types import Frame, Intrinsics
 
 logger = logging.getLogger(__name__)
@@ -263,7 +263,7 @@ def depth_registration(depth_intrinsics: tuple[float, ...], depth_extrinsics: tu
     if depth_extrinsics:
         T_cd[:3, 3] = depth_extrinsics[:3]
         if len(depth_extrinsics) == 6:
-            T_cd[:3, :3] = cv2.Rodrigues(np.asarray(depth_extrinsics[3:], dtype=np.float64))[0]
+            T_cd[:3, :3] = so3_exp(torch.tensor(depth_extrinsics[3:], dtype=torch.float64)).numpy()
     return DepthRegistration((depth_camera.fx, depth_camera.fy, depth_camera.cx, depth_camera.cy), T_cd,
                              (delivered.fx, delivered.fy, delivered.cx, delivered.cy),
                              (delivered.width, delivered.height))

@@ -241,6 +241,8 @@ class DepthRegistration:
         self.depth_camera = tuple(float(v) for v in depth_camera)
         self.color_camera = tuple(float(v) for v in color_camera)
         self.T_cd = np.asarray(T_cd, dtype=np.float64)
+        self._rotation = torch.from_numpy(self.T_cd[:3, :3].T.copy()).to(torch.float32)  # for row vectors
+        self._translation = torch.from_numpy(self.T_cd[:3, 3].copy()).to(torch.float32)
         self.width, self.height = int(size[0]), int(size[1])
         self._rays: dict[tuple[int, int], torch.Tensor] = {}
 
@@ -260,8 +262,7 @@ class DepthRegistration:
         z = torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32)).reshape(-1)
         valid = torch.isfinite(z) & (z > 0)
         X_d = self._depth_rays(*depth.shape)[valid] * z[valid, None]  # [N, 3] depth camera frame
-        T = torch.from_numpy(self.T_cd).to(torch.float32)
-        X_c = X_d @ T[:3, :3].T + T[:3, 3]  # [N, 3] colour camera frame
+        X_c = X_d @ self._rotation + self._translation  # [N, 3] colour camera frame
         front = X_c[:, 2] > 1e-6
         X_c, z_d = X_c[front], z[valid][front]
         z_c = X_c[:, 2]
