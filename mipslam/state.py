@@ -358,7 +358,7 @@ class SLAMState:
         changed = [not torch.equal(a, b) for a, b in zip(T_new, T_old)]
         corrections = T_new @ se3_inverse(T_old)  # [K, 4, 4]
         corrections[[not c for c in changed]] = torch.eye(4, dtype=torch.float64)  # exactly: those frames stay
-        if not changed:
+        if not any(changed):  # no keyframes, or none moved: no frame moves
             return self.gaussian_map.transform_by_anchor(corrections) if move_map else 0
         changed_ids = torch.tensor(changed, dtype=torch.bool)
         positions = torch.tensor(self.keyframe_frames, dtype=torch.int64)  # keyframe id -> row
