@@ -27,6 +27,7 @@ integer centres.
 from __future__ import annotations
 
 import math
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Sequence
@@ -121,19 +122,42 @@ def _detector(options: FeatureOptions, image_size: tuple[int, int]):
                           edgeThreshold=edge, patchSize=edge, fastThreshold=options.fast_threshold)
 
 
-def extract_features(
+@dataclass(frozen=True)
+class Keypoints:
+    """ORB keypoints of one image, before depth gives them 3D points (:func:`detect_keypoints`).
+
+    uv: [M, 2] float32 pixel coordinates; descriptors: [M, 32] uint8; octaves: [M] int64 pyramid levels
+    """
+
+    uv: np.ndarray
+    descriptors: np.ndarray
+    octaves: np.ndarray
+
+
+def detect_keypoints(
     color: torch.Tensor,  # [H, W, 3] float in [0, 1]
+    options: FeatureOptions,
+) -> Keypoints:
+    """ORB keypoints and descriptors of the grey image (module docstring, step 1); the colour alone decides them."""
+    grey = _grey_u8(color)
+    keypoints, descriptors = _detector(options, grey.shape).detectAndCompute(grey, None)
+    if descriptors is None or not keypoints:
+        return Keypoints(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros(0, np.int64))
+    return Keypoints(np.array([k.pt for k in keypoints], dtype=np.float32), descriptors,
+                     np.array([k.octave for k in keypoints], dtype=np.int64))
+
+
+def lift_keypoints(
+    keypoints: Keypoints,
     depth: torch.Tensor,  # [H, W] metres, 0 = no measurement
     intrinsics: Intrinsics,
     options: FeatureOptions,
 ) -> FrameFeatures:
-    """ORB keypoints, descriptors and back-projected 3D points of one frame (module docstring, step 1)."""
-    grey = _grey_u8(color)
-    keypoints, descriptors = _detector(options, grey.shape).detectAndCompute(grey, None)
-    if descriptors is None or not keypoints:
-        return FrameFeatures(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros((0, 3)),
-                             np.zeros(0, np.int64))
-    uv = np.array([k.pt for k in keypoints], dtype=np.float32)  # [M, 2]
+    """Each keypoint's 3D point in its camera frame from the depth at its nearest pixel (NaN rows without a depth
+    in ``[min_depth_m, max_depth_m]``)."""
+    uv = keypoints.uv
+    if len(uv) == 0:
+        return FrameFeatures(uv, keypoints.descriptors, np.zeros((0, 3)), keypoints.octaves)
     depth_np = depth.detach().to("cpu", torch.float32).numpy()
     col = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, depth_np.shape[1] - 1)
     row = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, depth_np.shape[0] - 1)
@@ -143,7 +167,17 @@ def extract_features(
     points[valid, 0] = (uv[valid, 0] - intrinsics.cx) / intrinsics.fx * z[valid]
     points[valid, 1] = (uv[valid, 1] - intrinsics.cy) / intrinsics.fy * z[valid]
     points[valid, 2] = z[valid]
-    return FrameFeatures(uv, descriptors, points, np.array([k.octave for k in keypoints], dtype=np.int64))
+    return FrameFeatures(uv, keypoints.descriptors, points, keypoints.octaves)
+
+
+def extract_features(
+    color: torch.Tensor,  # [H, W, 3] float in [0, 1]
+    depth: torch.Tensor,  # [H, W] metres, 0 = no measurement
+    intrinsics: Intrinsics,
+    options: FeatureOptions,
+) -> FrameFeatures:
+    """ORB keypoints, descriptors and back-projected 3D points of one frame (module docstring, step 1)."""
+    return lift_keypoints(detect_keypoints(color, options), depth, intrinsics, options)
 
 
 def match_features(query: np.ndarray, train: np.ndarray, ratio: float, max_hamming: int,
@@ -389,13 +423,22 @@ class Frontend:
 
     ``cache_frames``: how many frames' features are kept (the previous frame and the keyframes tried
     for relocalisation); a miss recomputes them from the frame, which gives the same values.
+
+    :meth:`detect_ahead` runs the image-only part (:func:`detect_keypoints`) for a frame read ahead, on the
+    reader's thread while the frame loop works; :meth:`features` takes that detection where it was made on the
+    very colour image it is asked about, and detects anew otherwise. Either way the values are the same.
     """
+
+    # detections made ahead and not yet asked for (the frame loop reads one frame ahead)
+    AHEAD_FRAMES = 4
 
     def __init__(self, config: FrontendConfig, options: FeatureOptions = FeatureOptions(), cache_frames: int = 32):
         self.config = config
         self.options = options
         self.cache_frames = max(2, cache_frames)
         self._features: OrderedDict[int, FrameFeatures] = OrderedDict()
+        self._ahead: OrderedDict[int, tuple[torch.Tensor, Keypoints]] = OrderedDict()
+        self._ahead_lock = threading.Lock()
 
     @staticmethod
     def motion_model(prediction: torch.Tensor, reason: str = "no_reference") -> FrontendStart:
@@ -412,11 +455,26 @@ class Frontend:
         if cached is not None:
             self._features.move_to_end(frame.index)
             return cached
-        features = extract_features(frame.color, frame.depth, frame.intrinsics, self.options)
+        with self._ahead_lock:
+            ahead = self._ahead.pop(frame.index, None)
+        # made on this very image (a frame re-timed since its read has another colour tensor)
+        keypoints = ahead[1] if ahead is not None and ahead[0] is frame.color else detect_keypoints(frame.color,
+                                                                                                   self.options)
+        features = lift_keypoints(keypoints, frame.depth, frame.intrinsics, self.options)
         self._features[frame.index] = features
         while len(self._features) > self.cache_frames:
             self._features.popitem(last=False)
         return features
+
+    def detect_ahead(self, frame: Frame) -> None:
+        """Detect ``frame``'s keypoints now, for :meth:`features` to take later (any thread; the read-ahead's)."""
+        if not self.enabled or frame.index in self._features:
+            return
+        keypoints = detect_keypoints(frame.color, self.options)
+        with self._ahead_lock:
+            self._ahead[frame.index] = (frame.color, keypoints)
+            while len(self._ahead) > self.AHEAD_FRAMES:
+                self._ahead.popitem(last=False)
 
     def start(
         self,

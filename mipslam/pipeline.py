@@ -109,6 +109,8 @@ class Stages:
                             kept_bytes=KEYFRAME_CACHE_MIB * 2**20)
         observer.attach(frames)
         frontend = Frontend(config.frontend) if config.frontend.method != "none" else None
+        if frontend is not None:
+            frames.on_read_ahead = frontend.detect_ahead
         tracking = hooks.options("tracking", TrackingOptions.from_config(config.tracking, depth_noise_power=noise))
         timing = SensorTiming(tracking.align_depth_time, config.dataset.rolling_shutter_readout_s)
         mapping = hooks.options("mapping", MappingOptions.from_config(config.mapping))

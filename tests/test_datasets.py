@@ -630,6 +630,26 @@ def test_frame_cache_reads_ahead_once_and_gives_the_same_frames(tmp_path):
     assert torch.equal(cache[0].depth, sequence[0].depth)  # after close: read in the caller's thread
 
 
+def test_frame_cache_hands_each_frame_read_ahead_to_its_hook_on_the_reader_thread(tmp_path):
+    import threading
+
+    from mipslam.datasets import FrameCache
+
+    write_replica(tmp_path / "rep")
+    sequence = make_sequence(DatasetConfig(kind="replica", path=str(tmp_path / "rep")))
+    seen = []
+    cache = FrameCache(sequence, torch.device("cpu"), capacity=2, read_ahead=True)
+    cache.on_read_ahead = lambda frame: seen.append((frame.index, threading.current_thread().name, frame.color))
+    try:
+        first = cache[0]  # read in the caller's thread: no hook
+        cache.prefetch(1)
+        second = cache[1]
+    finally:
+        cache.close()
+    assert first.index == 0 and [index for index, _, _ in seen] == [1]
+    assert seen[0][1].startswith("mipslam-read") and seen[0][2] is second.color  # the very image delivered
+
+
 def test_kept_frames_are_not_read_again_within_the_byte_budget(tmp_path):
     from mipslam.datasets import FrameCache
 

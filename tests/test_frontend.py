@@ -155,6 +155,36 @@ def test_start_and_relocalisation_give_world_poses(texture, intrinsics):
     assert frontend.relocalise(current, [(elsewhere, IDENTITY)]) is None  # lost: nothing agrees
 
 
+def _same_features(a: FrameFeatures, b: FrameFeatures) -> bool:
+    return (np.array_equal(a.keypoints, b.keypoints) and np.array_equal(a.descriptors, b.descriptors)
+            and np.array_equal(a.points_c, b.points_c, equal_nan=True) and np.array_equal(a.octaves, b.octaves))
+
+
+def test_keypoints_detected_ahead_are_the_ones_detected_when_asked(texture, intrinsics):
+    """detect_ahead (the read-ahead thread's) gives features() exactly what it computes itself; a frame whose
+    colour was replaced since (re-timed) is detected anew, from its own image."""
+    frame = _plane_view(IDENTITY, intrinsics, texture, 0)
+    expected = extract_features(frame.color, frame.depth, intrinsics, FeatureOptions())
+    assert len(expected) > 50
+    ahead = Frontend(FrontendConfig())
+    ahead.detect_ahead(frame)
+    assert frame.index in ahead._ahead
+    assert _same_features(ahead.features(frame), expected)
+    assert frame.index not in ahead._ahead  # taken, not kept twice
+
+    other = _plane_view(se3_exp(torch.tensor(SMALL, dtype=torch.float64)), intrinsics, texture, 0)
+    stale = Frontend(FrontendConfig())
+    stale.detect_ahead(frame)  # frame 0 as read ahead ...
+    moved = replace(frame, color=other.color)  # ... and as tracked, with another image
+    assert _same_features(stale.features(moved),
+                          extract_features(other.color, frame.depth, intrinsics, FeatureOptions()))
+
+    bounded = Frontend(FrontendConfig())
+    for index in range(Frontend.AHEAD_FRAMES + 3):  # never asked for: the oldest are dropped
+        bounded.detect_ahead(replace(frame, index=index))
+    assert list(bounded._ahead) == list(range(3, Frontend.AHEAD_FRAMES + 3))
+
+
 def test_off_means_motion_model(texture, intrinsics):
     frontend = Frontend(FrontendConfig(method="none"))
     frame = _plane_view(IDENTITY, intrinsics, texture, 0)

@@ -105,6 +105,8 @@ class FrameCache:
     ``adjust``: applied in the caller's thread to every frame read from the sequence before it is cached
     (the run's depth moved to the colour instant, :mod:`mipslam.sensor_sync`); :meth:`put` caches a
     frame adjusted elsewhere in the cache, the same one ``adjust`` gives when the frame is read again.
+    ``on_read_ahead``: called on the reader's thread with each frame it reads ahead, before ``adjust`` (work on
+    the image alone that the frame loop would otherwise wait for: the front-end's keypoints).
     """
 
     def __init__(self, sequence: RGBDSequence, device: torch.device, capacity: int, *, read_ahead: bool = False,
@@ -123,6 +125,7 @@ class FrameCache:
         # much longer while it is starved, so they do not count)
         self._read_seconds = 0.0
         self.adjust: Callable[[Frame], Frame] | None = None
+        self.on_read_ahead: Callable[[Frame], None] | None = None
 
     def _read(self, index: int, timed: bool = True) -> Frame:
         start = time.perf_counter()
@@ -148,7 +151,13 @@ class FrameCache:
         if (self._reader is None or not 0 <= index < len(self.sequence) or index in self._frames
                 or index in self._pending):
             return
-        self._pending[index] = self._reader.submit(self._read, index, False)
+        self._pending[index] = self._reader.submit(self._read_ahead, index)
+
+    def _read_ahead(self, index: int) -> Frame:
+        frame = self._read(index, timed=False)
+        if self.on_read_ahead is not None:
+            self.on_read_ahead(frame)
+        return frame
 
     def keep(self, index: int) -> None:
         """Keep frame ``index`` beyond the last ``capacity`` frames, within ``kept_bytes`` (the least recently
