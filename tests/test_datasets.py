@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -648,6 +649,35 @@ def test_frame_cache_hands_each_frame_read_ahead_to_its_hook_on_the_reader_threa
         cache.close()
     assert first.index == 0 and [index for index, _, _ in seen] == [1]
     assert seen[0][1].startswith("mipslam-read") and seen[0][2] is second.color  # the very image delivered
+
+
+def test_frame_cache_adjusts_a_marked_frame_once_at_its_next_read(tmp_path):
+    from mipslam.datasets import FrameCache
+
+    write_replica(tmp_path / "rep")
+    sequence = make_sequence(DatasetConfig(kind="replica", path=str(tmp_path / "rep")))
+    adjusted = []
+
+    def brighten(frame):  # stands in for the run's sensor timing: the same change at every read
+        adjusted.append(frame.index)
+        return replace(frame, color=frame.color * 0.5)
+
+    cache = FrameCache(sequence, torch.device("cpu"), capacity=2)
+    cache.adjust = brighten
+    raw = cache[0]
+    assert adjusted == [0]  # a frame read from the sequence is adjusted as it is cached
+    cache.put(replace(raw, color=sequence[0].color))  # e.g. tracking's own copy, taken before its motion is known
+    cache.adjust_when_read(0)
+    assert adjusted == [0]  # nothing until it is read
+    assert torch.equal(cache[0].color, sequence[0].color * 0.5) and adjusted == [0, 0]
+    assert torch.equal(cache[0].color, sequence[0].color * 0.5) and adjusted == [0, 0]  # once
+    cache.adjust_when_read(0)
+    cache.put(replace(raw, color=sequence[0].color * 0.5))  # adjusted elsewhere
+    cache[0]
+    assert adjusted == [0, 0]  # put() answers the mark
+    cache.adjust_when_read(1)
+    cache[1], cache[2], cache[3]  # frame 1 leaves the cache before it is read again: its mark goes with it
+    assert 1 not in cache._adjust_at_read
 
 
 def test_kept_frames_are_not_read_again_within_the_byte_budget(tmp_path):

@@ -178,6 +178,28 @@ def test_depth_taken_late_and_a_rolling_shutter_are_undone_and_resume_exactly(tm
     assert not np.array_equal(read_tum_trajectory(off_dir / "traj_est.txt").T_wc, full.T_wc)
 
 
+def test_colour_rows_moved_when_a_frame_is_read_again_equal_those_moved_right_after_tracking(tmp_path, monkeypatch):
+    """A rolling shutter alone: the cache moves a frame's colour rows when a later stage reads it (mapping a
+    keyframe), by the motion of its record; the same images as moving every frame right after its tracking."""
+    import data_synth
+    import mipslam.pipeline as pipeline
+
+    sequence = tmp_path / "seq"
+    data_synth.generate(sequence, layout="tum", trajectory="loop", width=40, height=30, frames=6, seed=0,
+                        supersample=2, rolling_shutter=0.6)
+    on = (f"dataset.rolling_shutter_readout_s={0.6 / 30}",)
+    run_slam(tiny_config(sequence, *on), tmp_path / "lazy", evaluate=False)
+    monkeypatch.setattr(pipeline, "moves_colour_only", lambda timing, frame: False)  # every frame moved at once
+    run_slam(tiny_config(sequence, *on), tmp_path / "eager", evaluate=False)
+    for name in ("traj_est.txt", "map.ply"):
+        assert (tmp_path / "lazy" / name).read_bytes() == (tmp_path / "eager" / name).read_bytes()
+    monkeypatch.undo()
+    run_slam(tiny_config(sequence, *on, "dataset.max_frames=4"), tmp_path / "split", evaluate=False)
+    run_slam(tiny_config(sequence, *on), tmp_path / "split", resume=True, evaluate=False)
+    np.testing.assert_allclose(read_tum_trajectory(tmp_path / "split" / "traj_est.txt").T_wc,
+                               read_tum_trajectory(tmp_path / "lazy" / "traj_est.txt").T_wc, atol=1e-6)
+
+
 def test_the_final_refinement_reads_the_recorded_images_at_half_the_cameras_resolution_or_finer(tiny_sequence):
     from mipslam.datasets import make_sequence
     from mipslam.pipeline import final_refinement_images

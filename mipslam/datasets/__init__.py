@@ -104,7 +104,9 @@ class FrameCache:
 
     ``adjust``: applied in the caller's thread to every frame read from the sequence before it is cached
     (the run's depth moved to the colour instant, :mod:`mipslam.sensor_sync`); :meth:`put` caches a
-    frame adjusted elsewhere in the cache, the same one ``adjust`` gives when the frame is read again.
+    frame adjusted elsewhere in the cache, the same one ``adjust`` gives when the frame is read again;
+    :meth:`adjust_when_read` has ``adjust`` applied to the cached frame at its next read instead (a frame that
+    only a later stage may read again: its adjustment costs nothing until it is).
     ``on_read_ahead``: called on the reader's thread with each frame it reads ahead, before ``adjust`` (work on
     the image alone that the frame loop would otherwise wait for: the front-end's keypoints).
     """
@@ -126,6 +128,7 @@ class FrameCache:
         self._read_seconds = 0.0
         self.adjust: Callable[[Frame], Frame] | None = None
         self.on_read_ahead: Callable[[Frame], None] | None = None
+        self._adjust_at_read: set[int] = set()  # cached frames that ``adjust`` has not seen since they changed
 
     def _read(self, index: int, timed: bool = True) -> Frame:
         start = time.perf_counter()
@@ -171,10 +174,16 @@ class FrameCache:
         self._kept[index] = frame
         self._kept_size += size
         while self._kept_size > self.kept_bytes:
-            _, dropped = self._kept.popitem(last=False)
+            dropped_index, dropped = self._kept.popitem(last=False)
+            if dropped_index not in self._frames:
+                self._adjust_at_read.discard(dropped_index)
             self._kept_size -= _frame_bytes(dropped)
 
     def __getitem__(self, index: int) -> Frame:
+        if index in self._adjust_at_read:
+            self._adjust_at_read.discard(index)
+            if self.adjust is not None and (index in self._frames or index in self._kept):
+                self.put(self.adjust(self._frames[index] if index in self._frames else self._kept[index]))
         if index in self._frames:
             self._frames.move_to_end(index)
             return self._frames[index]
@@ -188,8 +197,14 @@ class FrameCache:
         self._store(index, frame)
         return frame
 
+    def adjust_when_read(self, index: int) -> None:
+        """Apply ``adjust`` to the cached frame ``index`` when it is next read (as to a frame read again from the
+        sequence); a frame no longer cached is read and adjusted anyway."""
+        self._adjust_at_read.add(index)
+
     def put(self, frame: Frame) -> None:
         """Cache ``frame`` in place of the frame of its index (wherever that one is kept)."""
+        self._adjust_at_read.discard(frame.index)
         if frame.index in self._kept:
             self._kept[frame.index] = frame
         self._store(frame.index, frame)
@@ -199,7 +214,9 @@ class FrameCache:
         self._frames[index] = frame
         self._frames.move_to_end(index)
         while len(self._frames) > self.capacity:
-            self._frames.popitem(last=False)
+            evicted, _ = self._frames.popitem(last=False)
+            if evicted not in self._kept:  # read again from the sequence, adjusted then
+                self._adjust_at_read.discard(evicted)
 
     def close(self) -> None:
         """Stop the background reader (frames on their way are finished and dropped)."""
