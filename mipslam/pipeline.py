@@ -137,7 +137,7 @@ def process_frame(stages: Stages, state: SLAMState, index: int, timestamp: float
         is_keyframe = tracked.ok and keyframe_decision(stages.keyframes, state, stages.frames, frame,
                                                        tracked.T_wc, tracked.map_coverage).is_keyframe
     record = state.append_frame(index, timestamp, tracked, is_keyframe)
-    if stages.timing.moves(frame) and moves_colour_only(stages.timing, frame):
+    if stages.timing.moves_colour_only(frame):
         stages.frames.adjust_when_read(index)  # the colour rows, moved by the record's motion when read again
     if is_keyframe:
         with observe("mapping"):
@@ -179,18 +179,13 @@ def frame_at_pose(stages: Stages, state: SLAMState, frame: Frame, T_wc: torch.Te
     return synchronised(frame, tracked_velocity(previous, frame, T_wc, tracked), stages.timing)
 
 
-def moves_colour_only(timing: SensorTiming, frame: Frame) -> bool:
-    """Whether ``timing`` moves only ``frame``'s colour rows (a rolling shutter, no depth offset to undo)."""
-    return not (timing.align_depth_time and frame.depth_time_offset != 0)
-
-
 def frame_after_tracking(stages: Stages, state: SLAMState, frame: Frame, tracked: TrackingResult) -> Frame:
     """``frame`` at its colour instant by its tracked motion, cached for the later stages. Where only the colour
     rows move (no depth offset to undo), the frame is returned as it is and the cache moves them when a later
     stage reads it (``FrameCache.adjust``: the same motion, from the frame's record): the keyframe decision reads
     the depth alone, and most frames are never read again (:func:`process_frame` asks for it once the frame's
     record, which the cache's adjustment reads, exists)."""
-    if not stages.timing.moves(frame) or moves_colour_only(stages.timing, frame):
+    if not stages.timing.moves(frame) or stages.timing.moves_colour_only(frame):
         return frame
     moved = frame_at_pose(stages, state, frame, tracked.T_wc, tracked.ok)
     if moved is not frame:

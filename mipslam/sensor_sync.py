@@ -54,7 +54,15 @@ class SensorTiming:
 
     def moves(self, frame: Frame) -> bool:
         """Whether anything of ``frame`` is moved (a depth offset to undo, or a rolling shutter)."""
-        return self.readout_s > 0 or (self.align_depth_time and frame.depth_time_offset != 0)
+        return self.readout_s > 0 or self.moves_depth(frame)
+
+    def moves_depth(self, frame: Frame) -> bool:
+        """Whether ``frame``'s depth is moved (a depth offset to undo)."""
+        return self.align_depth_time and frame.depth_time_offset != 0
+
+    def moves_colour_only(self, frame: Frame) -> bool:
+        """Whether only ``frame``'s colour rows are moved (a rolling shutter, no depth offset to undo)."""
+        return self.readout_s > 0 and not self.moves_depth(frame)
 
 
 def _velocity(earlier: "FrameRecord", T_wc_tracked: torch.Tensor, timestamp: float) -> torch.Tensor | None:

@@ -182,14 +182,14 @@ def test_colour_rows_moved_when_a_frame_is_read_again_equal_those_moved_right_af
     """A rolling shutter alone: the cache moves a frame's colour rows when a later stage reads it (mapping a
     keyframe), by the motion of its record; the same images as moving every frame right after its tracking."""
     import data_synth
-    import mipslam.pipeline as pipeline
+    from mipslam.sensor_sync import SensorTiming
 
     sequence = tmp_path / "seq"
     data_synth.generate(sequence, layout="tum", trajectory="loop", width=40, height=30, frames=6, seed=0,
                         supersample=2, rolling_shutter=0.6)
     on = (f"dataset.rolling_shutter_readout_s={0.6 / 30}",)
     run_slam(tiny_config(sequence, *on), tmp_path / "lazy", evaluate=False)
-    monkeypatch.setattr(pipeline, "moves_colour_only", lambda timing, frame: False)  # every frame moved at once
+    monkeypatch.setattr(SensorTiming, "moves_colour_only", lambda timing, frame: False)  # every frame moved at once
     run_slam(tiny_config(sequence, *on), tmp_path / "eager", evaluate=False)
     for name in ("traj_est.txt", "map.ply"):
         assert (tmp_path / "lazy" / name).read_bytes() == (tmp_path / "eager" / name).read_bytes()
