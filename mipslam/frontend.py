@@ -30,7 +30,7 @@ import math
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -451,10 +451,16 @@ class Frontend:
 
     def features(self, frame: Frame) -> FrameFeatures:
         """The frame's features, from the cache or computed now (keyed by ``frame.index``)."""
-        cached = self._features.get(frame.index)
+        return self.features_of(frame.index, lambda: frame)
+
+    def features_of(self, index: int, read: Callable[[], Frame]) -> FrameFeatures:
+        """Frame ``index``'s features, from the cache, or computed now on ``read()``: the frame is read only on a
+        miss (reading a cached frame again may cost a resampling of its images, :class:`~mipslam.datasets.FrameCache`)."""
+        cached = self._features.get(index)
         if cached is not None:
-            self._features.move_to_end(frame.index)
+            self._features.move_to_end(index)
             return cached
+        frame = read()
         with self._ahead_lock:
             ahead = self._ahead.pop(frame.index, None)
         # made on this very image (a frame re-timed since its read has another colour tensor)
@@ -484,15 +490,28 @@ class Frontend:
         prediction: torch.Tensor,  # [4, 4] float64 motion-model pose of ``frame``
     ) -> FrontendStart:
         """The start pose of ``frame``: PnP against ``reference`` when the features agree, else ``prediction``."""
-        if not self.enabled or reference is None or T_wc_reference is None:
+        if reference is None:
+            return self.start_from(frame, None, lambda: None, T_wc_reference, prediction)
+        return self.start_from(frame, reference.index, lambda: reference, T_wc_reference, prediction)
+
+    def start_from(
+        self,
+        frame: Frame,
+        reference_index: int | None,  # the previous tracked frame (None: none)
+        read_reference: Callable[[], Frame],  # reads it, asked only where its features are not cached
+        T_wc_reference: torch.Tensor | None,  # [4, 4] its current pose
+        prediction: torch.Tensor,  # [4, 4] float64 motion-model pose of ``frame``
+    ) -> FrontendStart:
+        """:meth:`start` against frame ``reference_index``, read only where its features must be computed."""
+        if not self.enabled or reference_index is None or T_wc_reference is None:
             return FrontendStart(prediction, "motion_model", 0, -1, "off" if not self.enabled else "no_reference")
         T_rc_prior = torch.linalg.inv(T_wc_reference.to(torch.float64)) @ prediction.to(torch.float64)
-        relative = estimate_relative_pose(self.features(reference), self.features(frame), frame.intrinsics,
-                                          self.options, T_rc_prior)
+        relative = estimate_relative_pose(self.features_of(reference_index, read_reference), self.features(frame),
+                                          frame.intrinsics, self.options, T_rc_prior)
         if not relative.ok:
             return FrontendStart(prediction, "motion_model", relative.inliers, -1, relative.reason)
         T_wc = T_wc_reference.to(torch.float64) @ relative.T_rc
-        return FrontendStart(T_wc, "features", relative.inliers, reference.index)
+        return FrontendStart(T_wc, "features", relative.inliers, reference_index)
 
     def relocalise(
         self,

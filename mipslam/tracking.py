@@ -757,7 +757,7 @@ def frontend_start(frontend: Frontend | None, state: "SLAMState", frame: Frame, 
     reference = state.newest_tracked_frame()
     if frontend is None or reference is None:
         return Frontend.motion_model(prediction)
-    return frontend.start(frame, frames[reference.index], reference.T_wc, prediction)
+    return frontend.start_from(frame, reference.index, lambda: frames[reference.index], reference.T_wc, prediction)
 
 
 def relocalise_keyframes(tracker: Tracker, frontend: Frontend | None, state: "SLAMState", frame: Frame,

@@ -155,6 +155,27 @@ def test_start_and_relocalisation_give_world_poses(texture, intrinsics):
     assert frontend.relocalise(current, [(elsewhere, IDENTITY)]) is None  # lost: nothing agrees
 
 
+def test_start_reads_the_reference_only_where_its_features_are_not_cached(texture, intrinsics):
+    """start_from() asks for the reference frame only on a cache miss (reading a cached frame again may resample
+    its images), and gives what start() gives with the frame in hand."""
+    T_w_cur = se3_exp(torch.tensor(LARGE, dtype=torch.float64))
+    reference = _plane_view(IDENTITY, intrinsics, texture, 0)
+    current = _plane_view(T_w_cur, intrinsics, texture, 1)
+    reads = []
+
+    def read() -> Frame:
+        reads.append(reference.index)
+        return reference
+
+    frontend = Frontend(FrontendConfig())
+    first = frontend.start_from(current, reference.index, read, IDENTITY, IDENTITY)
+    assert reads == [0] and first.source == "features"
+    again = frontend.start_from(current, reference.index, read, IDENTITY, IDENTITY)
+    assert reads == [0] and torch.equal(again.T_wc, first.T_wc)  # cached: not read again
+    in_hand = Frontend(FrontendConfig()).start(current, reference, IDENTITY, IDENTITY)
+    assert torch.equal(in_hand.T_wc, first.T_wc) and in_hand.inliers == first.inliers
+
+
 def _same_features(a: FrameFeatures, b: FrameFeatures) -> bool:
     return (np.array_equal(a.keypoints, b.keypoints) and np.array_equal(a.descriptors, b.descriptors)
             and np.array_equal(a.points_c, b.points_c, equal_nan=True) and np.array_equal(a.octaves, b.octaves))
