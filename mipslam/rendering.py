@@ -12,7 +12,7 @@ from mipslam.config import RenderConfig
 from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry.camera import project, sampling_rate
 from mipslam.geometry.se3 import transform_points
-from mipslam.render import RenderOptions, RenderOutput, rasterize, rasterize_pose_only
+from mipslam.render import RenderOptions, RenderOutput, compiled_library, rasterize, rasterize_pose_only
 from mipslam.types import Intrinsics
 
 
@@ -138,7 +138,32 @@ def frustum_indices(
     centimetres, while a margin of 0.25 is about 16 degrees of a 70-degree view: a Gaussian left out is
     one no render of the view could draw, so images and gradients are those of the whole map, and the
     per-Gaussian projection scales with what the view sees, not with the size of the map.
+
+    One pass of the compiled library where ``config.backend`` takes it and the map is CPU float32 (the test in
+    float64: it decides as :func:`frustum_indices_reference` except within ~1e-5 px of a limit, where the
+    Gaussian is a quarter of the image outside it and no render draws it); the torch reference elsewhere.
     """
+    library = compiled_library() if (config.backend != "torch" and means.is_cpu
+                                     and means.dtype == torch.float32 == scales.dtype) else None
+    if library is None:
+        return frustum_indices_reference(means, scales, T_cw, intrinsics)
+    T = T_cw.detach().to("cpu", torch.float64)
+    view = tuple(T[:3, :3].reshape(-1).tolist()) + tuple(T[:3, 3].tolist()) + (
+        intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
+    near, pad = 0.5 * RenderOptions.near_plane, FRUSTUM_MARGIN * max(intrinsics.width, intrinsics.height) + 1.0
+    return library.frustum_rows(means, scales, view,
+                                (intrinsics.width, intrinsics.height, near, RenderOptions.k_sigma, pad))
+
+
+@torch.no_grad()
+def frustum_indices_reference(
+    means: torch.Tensor,  # [N, 3] world, metres
+    scales: torch.Tensor,  # [N, 3] std-devs, metres
+    T_cw: torch.Tensor,  # [4, 4] world-to-camera
+    intrinsics: Intrinsics,
+) -> torch.Tensor:  # [M] int64, increasing
+    """:func:`frustum_indices` in torch (any device and dtype): the readable reference the compiled test is
+    checked against."""
     near = 0.5 * RenderOptions.near_plane
     points_c = transform_points(T_cw.to(means), means.detach())  # [N, 3] camera frame
     uv, z = project(points_c, intrinsics.matrix(dtype=means.dtype, device=means.device), min_depth=near)  # [N, 2] px

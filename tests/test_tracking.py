@@ -15,7 +15,9 @@ from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry import se3_exp, se3_inverse, se3_log
 from mipslam.geometry.direct import DirectResult
 from mipslam.pipeline import run_slam
+from mipslam.render import RenderOptions
 from mipslam.rendering import FRUSTUM_MARGIN, frustum_subset, render_view
+from mipslam.render import cpu as cpu_backend
 import mipslam.rendering as rendering_module
 import mipslam.tracking as tracking
 from mipslam.state import FrameRecord, SLAMState
@@ -113,6 +115,44 @@ def test_frustum_subset_renders_like_the_whole_map_from_nearby_poses():
         assert whole.n_visible == part.n_visible
         for name in ("color", "depth", "alpha"):
             assert torch.allclose(getattr(whole, name), getattr(part, name), atol=1e-6), name
+
+
+def test_compiled_frustum_rows_are_the_torch_references():
+    """The compiled frustum test (float64) keeps the rows the torch reference keeps (float32), for poses and
+    cameras of every kind, except a Gaussian within 1e-3 px or 1e-6 m of a limit; render.backend torch takes
+    the reference."""
+    if not cpu_backend.is_available():
+        pytest.skip(f"the compiled CPU library is not available: {cpu_backend.unavailable_reason()}")
+    generator = torch.Generator().manual_seed(1)
+    n = 20000
+    means = 3.0 * torch.randn(n, 3, generator=generator)
+    means[:50, 2] = 0.5 * RenderOptions.near_plane  # on the near limit
+    scales = 0.1 * torch.rand(n, 3, generator=generator) ** 3
+    cameras = (Intrinsics(fx=40.0, fy=40.0, cx=31.5, cy=23.5, width=64, height=48),
+               Intrinsics(fx=517.3, fy=516.5, cx=318.6, cy=255.3, width=640, height=480))
+    poses = [torch.eye(4)] + [se3_exp(0.8 * torch.randn(6, generator=generator, dtype=torch.float64)).float()
+                              for _ in range(6)]
+    for intrinsics in cameras:
+        for T_cw in poses:
+            compiled = rendering_module.frustum_indices(means, scales, T_cw, intrinsics, RenderConfig())
+            reference = rendering_module.frustum_indices_reference(means, scales, T_cw, intrinsics)
+            assert torch.all(compiled[1:] > compiled[:-1])
+            assert T_cw is not poses[0] or len(reference) > 1000  # the camera at the origin sees many
+            differing = torch.tensor(sorted(set(compiled.tolist()) ^ set(reference.tolist())), dtype=torch.int64)
+            if len(differing):  # only where the float64 test sits on a limit
+                points = means[differing].double() @ T_cw[:3, :3].double().T + T_cw[:3, 3].double()
+                z = points[:, 2]
+                near = 0.5 * RenderOptions.near_plane
+                reach = (RenderOptions.k_sigma * scales[differing].double().amax(-1) * max(intrinsics.fx, intrinsics.fy)
+                         / z.clamp_min(near) + FRUSTUM_MARGIN * max(intrinsics.width, intrinsics.height) + 1.0)
+                u = intrinsics.fx * points[:, 0] / z.clamp_min(near) + intrinsics.cx
+                v = intrinsics.fy * points[:, 1] / z.clamp_min(near) + intrinsics.cy
+                slack = torch.stack([u + reach + 0.5, intrinsics.width - 0.5 - u + reach,
+                                     v + reach + 0.5, intrinsics.height - 0.5 - v + reach], -1).abs().amin(-1)
+                assert bool(((slack < 1e-3) | ((z - near).abs() < 1e-6)).all()), differing
+            assert len(differing) <= 1e-3 * n
+    torch_only = rendering_module.frustum_indices(means, scales, poses[1], cameras[1], RenderConfig(backend="torch"))
+    assert torch.equal(torch_only, rendering_module.frustum_indices_reference(means, scales, poses[1], cameras[1]))
 
 
 def test_tracking_renders_the_map_with_its_own_filter_rates(tiny_sequence, tmp_path, monkeypatch):

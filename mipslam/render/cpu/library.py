@@ -30,7 +30,7 @@ from mipslam.errors import BackendUnavailableError, RenderError
 log = logging.getLogger("mipslam.render.cpu")
 
 #: The C interface version this module speaks (mipslam_abi_version in raster_ext.cpp).
-ABI_VERSION = 7
+ABI_VERSION = 8
 _ERROR_BYTES = 2048
 _ERR_VALUE, _ERR_MEMORY = 1, 3
 REBUILD_HINT = "run ./scripts/setup or python -m mipslam.render.cpu.build"
@@ -56,6 +56,7 @@ _SIGNATURES = {
     "mipslam_rgbd_l1": ([_p] * 7 + [_i64, _i64, _f64, _i64, _f64, _f64, _i64, _f64] + [_p] * 4, ctypes.c_int),
     "mipslam_ssim": ([_p] * 3 + [_i64] * 3 + [_p, _i64, _f64, _f64, _f64, _i64, _p, _p, _p, _i64], ctypes.c_int),
     "mipslam_ssim_moments": ([_p, _i64, _i64, _i64, _p, _i64, _i64, _p, _p, _i64], ctypes.c_int),
+    "mipslam_frustum_rows": ([_p, _p, _i64, _p, _p, _p, _p], ctypes.c_int),
     "mipslam_guided_match": ([_p, _i64, _p, _p, _i64, _f64, _p, _p, _i64, _f64, _i64, _p, _p, _p, _i64], ctypes.c_int),
 }
 
@@ -218,6 +219,23 @@ class Library:
         return T, int(stats[0]), int(stats[1]), bool(stats[2])
 
     # --- the front-end's guided matching (feature_match.h) ---------------------------------------------
+    def frustum_rows(self, means: torch.Tensor, scales: torch.Tensor, view: tuple[float, ...],
+                     limits: tuple[float, ...]) -> torch.Tensor:
+        """Rows of the Gaussians a view can draw, increasing: means and scales [N, 3] float32 (CPU), ``view`` = 12
+        numbers of R_cw (row-major) and t_cw, then fx, fy, cx, cy; ``limits`` = width, height, near (m),
+        k_sigma, pad (px). -> [M] int64, as :func:`mipslam.rendering.frustum_indices_reference` decides."""
+        n = means.shape[0]
+        means, scales = means.detach().contiguous(), scales.detach().contiguous()
+        _check(means, "means", torch.float32, (n, 3))
+        _check(scales, "scales", torch.float32, (n, 3))
+        if len(view) != 16 or len(limits) != 5:
+            raise RuntimeError(f"mipslam frustum rows: {len(view)} view and {len(limits)} limit numbers (16 and 5)")
+        rows = torch.empty(max(1, n), dtype=torch.int64)
+        count = np.zeros(1, dtype=np.int64)
+        self._call(self._lib.mipslam_frustum_rows, _ptr(means), _ptr(scales), n, _c_array(ctypes.c_double, view),
+                   _c_array(ctypes.c_double, limits), _ptr(rows), count.ctypes.data)
+        return rows[: int(count[0])].clone()
+
     def guided_match(self, keypoints, projections, projection_ids, limit: float, query, train, ratio: float,
                      max_hamming: int):
         """Mutual, ratio-tested Hamming matches between keypoints [M, 2] and the reference points whose projections

@@ -839,7 +839,7 @@ int guarded(char* err, int64_t err_len, F&& body) {
 #endif
 
 // Bumped whenever a signature below changes (library.py refuses a library of another version).
-MIPSLAM_API int mipslam_abi_version(void) { return 7; }
+MIPSLAM_API int mipslam_abi_version(void) { return 8; }
 
 // Hash of the sources and flags the library was built from (mipslam/render/cpu/build.py, source_hash), also
 // readable from the file without loading it (the marker).
@@ -1068,6 +1068,42 @@ MIPSLAM_API int mipslam_direct_align(int64_t levels, const float* const* points,
         stats[0] = outcome.steps;
         stats[1] = outcome.points;
         stats[2] = outcome.ran ? 1 : 0;
+    });
+}
+
+// The rows of the Gaussians a view can draw (mipslam.rendering.frustum_indices, its torch reference): means and
+// scales [N, 3] float32 (world, metres; std-devs), view [16] float64 = R_cw row-major [9], t_cw [3], fx, fy, cx,
+// cy; limits [5] float64 = width, height, near (m), k_sigma, pad (px). A row is kept where z > near and the
+// disc of radius k_sigma * max scale * max(fx, fy) / max(z, near) + pad around its projection reaches the image
+// (pixel centres at integers, the image spans [-0.5, size - 0.5]). Increasing rows into rows [N], their number
+// into count[0]. In float64: the float32 reference decides alike except within ~1e-5 px of a limit, where no
+// render of the view draws the Gaussian either way.
+MIPSLAM_API int mipslam_frustum_rows(const float* means, const float* scales, int64_t N, const double* view,
+                                     const double* limits, int64_t* rows, int64_t* count, char* err,
+                                     int64_t err_len) {
+    using namespace mipslam_cpu;
+    return guarded(err, err_len, [&] {
+        MIPSLAM_CHECK(N >= 0, "mipslam_frustum_rows: bad size");
+        const double fx = view[12], fy = view[13], cx = view[14], cy = view[15];
+        const double width = limits[0], height = limits[1], near = limits[2], k_sigma = limits[3], pad = limits[4];
+        const double focal = std::max(fx, fy);
+        int64_t kept = 0;
+        for (int64_t i = 0; i < N; ++i) {
+            const float* m = means + 3 * i;
+            const float* s = scales + 3 * i;
+            const double z = view[6] * m[0] + view[7] * m[1] + view[8] * m[2] + view[11];
+            const double x = view[0] * m[0] + view[1] * m[1] + view[2] * m[2] + view[9];
+            const double y = view[3] * m[0] + view[4] * m[1] + view[5] * m[2] + view[10];
+            const double inv_z = 1.0 / std::max(z, near);
+            const double u = fx * x * inv_z + cx, v = fy * y * inv_z + cy;
+            const double reach = k_sigma * (double)std::max(s[0], std::max(s[1], s[2])) * focal * inv_z + pad;
+            // branch-free: a map's rows fall in and out of a view in no predictable order
+            const bool keep = (z > near) & (u + reach > -0.5) & (u - reach < width - 0.5) & (v + reach > -0.5) &
+                              (v - reach < height - 0.5);
+            rows[kept] = i;
+            kept += keep ? 1 : 0;
+        }
+        count[0] = kept;
     });
 }
 
