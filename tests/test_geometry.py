@@ -430,3 +430,25 @@ def test_interpolate_pose_batched_matches_one_pose_at_a_time():
     half = interpolate_pose(T_a[0], T_b[0], 0.5)
     angle_ab = float(rotation_angle(T_a[0, :3, :3].T @ T_b[0, :3, :3]))
     assert float(rotation_angle(T_a[0, :3, :3].T @ half[:3, :3])) == pytest.approx(angle_ab / 2, abs=1e-12)
+
+
+def test_one_transform_in_float64_is_bitwise_the_batched_forms():
+    """se3_log, se3_exp, se3_inverse and so3_log of one CPU float64 transform (computed with Python floats) give
+    bitwise what the batched torch forms give for it, at every angle from 1e-6 rad to pi; float32 and gradients
+    take the batched forms."""
+    generator = torch.Generator().manual_seed(3)
+    for k in range(3000):
+        scale = (1e-6, 1e-3, 0.02, 0.3, 3.0)[k % 5]
+        xi = scale * torch.randn(6, generator=generator, dtype=torch.float64)
+        T = se3_exp(xi[None])[0]
+        assert torch.equal(se3_exp(xi), T)
+        assert torch.equal(se3_log(T), se3_log(T[None])[0])
+        assert torch.equal(se3_inverse(T), se3_inverse(T[None])[0])
+        assert torch.equal(so3_log(T[:3, :3]), so3_log(T[None, :3, :3])[0])
+    R_pi = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))  # the quaternion's w = 0
+    assert torch.equal(so3_log(R_pi), so3_log(R_pi[None])[0])
+    assert torch.equal(se3_log(torch.eye(4, dtype=torch.float64)), torch.zeros(6, dtype=torch.float64))
+    xi = torch.full((6,), 0.1, dtype=torch.float64, requires_grad=True)
+    se3_log(se3_exp(xi)).sum().backward()  # a gradient flows through the batched forms
+    assert xi.grad is not None and torch.isfinite(xi.grad).all()
+    assert se3_exp(xi.detach().float()).dtype == torch.float32

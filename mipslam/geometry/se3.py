@@ -12,7 +12,7 @@ References: Barfoot, "State Estimation for Robotics" (2017), sections 7.1-7.2; S
 from __future__ import annotations
 
 import math
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -56,6 +56,104 @@ def _rodrigues_coeffs(theta2: torch.Tensor, small: float):
     b = torch.where(is_small, 0.5 - theta2 / 24 + theta2**2 / 720, (1 - torch.cos(t)) / t2)
     c = torch.where(is_small, 1.0 / 6 - theta2 / 120 + theta2**2 / 5040, (t - torch.sin(t)) / (t2 * t))
     return a, b, c
+
+
+# ----------------------------------------------------------------------------- one transform in float64 on the CPU
+# Tracking, the sensor timing and the keyframe tests take the log, exp or inverse of one 4x4 pose at a time, where
+# the ~60 tensor operations of the batched forms cost ~1 ms of dispatch for a few hundred flops. The functions below
+# compute one transform with Python floats by the same operations in the same order (sums left to right, as the
+# batched forms reduce 3 and 4 elements), and take torch's own scalar sqrt, sin and cos, which differ from math's
+# in the last bit: the results are bitwise those of the batched forms (tests/test_geometry.py).
+
+def _one(t: torch.Tensor, shape: tuple[int, ...]) -> bool:
+    """Whether ``t`` is one CPU float64 transform of ``shape`` that no gradient flows through."""
+    return t.dtype == torch.float64 and t.shape == shape and t.device.type == "cpu" and not t.requires_grad
+
+
+def _scalar(op: Callable[[torch.Tensor], torch.Tensor], x: float) -> float:
+    return op(torch.tensor(x, dtype=torch.float64)).item()
+
+
+def _coeffs_one(theta2: float) -> tuple[float, float, float]:
+    """:func:`_rodrigues_coeffs` of one float64 squared angle."""
+    if theta2 < _SERIES_ANGLE_SQ[torch.float64]:
+        return (1 - theta2 / 6 + theta2**2 / 120, 0.5 - theta2 / 24 + theta2**2 / 720,
+                1.0 / 6 - theta2 / 120 + theta2**2 / 5040)
+    t = _scalar(torch.sqrt, theta2)
+    sin = _scalar(torch.sin, t)
+    return sin / t, (1 - _scalar(torch.cos, t)) / theta2, (t - sin) / (theta2 * t)
+
+
+def _hat_one(x: float, y: float, z: float) -> tuple:
+    return ((0.0, -z, y), (z, 0.0, -x), (-y, x, 0.0))
+
+
+def _matmul_one(A: Sequence[Sequence[float]], B: Sequence[Sequence[float]]) -> list[list[float]]:
+    return [[A[i][0] * B[0][j] + A[i][1] * B[1][j] + A[i][2] * B[2][j] for j in range(len(B[0]))] for i in range(3)]
+
+
+def _combine_one(a: float, K: Sequence[Sequence[float]], b: float, K2: Sequence[Sequence[float]]) -> list[list[float]]:
+    """``I + a K + b K2`` (3x3), added in that order."""
+    return [[(1.0 if i == j else 0.0) + a * K[i][j] + b * K2[i][j] for j in range(3)] for i in range(3)]
+
+
+def _quat_one(R: Sequence[Sequence[float]]) -> tuple[float, float, float, float]:
+    """:func:`rotmat_to_quat_wxyz` of one rotation."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R
+    trace = r00 + r11 + r22
+    candidates = ((1 + trace, r21 - r12, r02 - r20, r10 - r01),
+                  (r21 - r12, 1 + r00 - r11 - r22, r01 + r10, r02 + r20),
+                  (r02 - r20, r01 + r10, 1 - r00 + r11 - r22, r12 + r21),
+                  (r10 - r01, r02 + r20, r12 + r21, 1 - r00 - r11 + r22))
+    pivots = (trace, r00, r11, r22)
+    q = candidates[max(range(4), key=lambda i: (pivots[i], -i))]  # argmax: the first of equal pivots
+    norm = max(math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), torch.finfo(torch.float64).tiny)
+    q = tuple(v / norm for v in q)
+    return tuple(-v for v in q) if q[0] < 0 else q
+
+
+def _so3_log_one(R: Sequence[Sequence[float]]) -> tuple[float, float, float]:
+    """:func:`so3_log` of one rotation."""
+    w, x, y, z = _quat_one(R)
+    n2 = x * x + y * y + z * z
+    if n2 < _TINY_SIN_SQ[torch.float64]:
+        scale = 2 / w * (1 - n2 / (3 * w**2))
+    else:
+        n = _scalar(torch.sqrt, n2)
+        scale = 2 * _scalar(lambda v: torch.atan2(v, torch.tensor(w, dtype=torch.float64)), n) / n
+    return scale * x, scale * y, scale * z
+
+
+def _matrix(R: Sequence[Sequence[float]], t: Sequence[float]) -> torch.Tensor:
+    return torch.tensor([[*R[0], t[0]], [*R[1], t[1]], [*R[2], t[2]], [0.0, 0.0, 0.0, 1.0]], dtype=torch.float64)
+
+
+def _se3_exp_one(xi: Sequence[float]) -> torch.Tensor:
+    rho, phi = xi[:3], xi[3:]
+    a, b, c = _coeffs_one(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
+    K = _hat_one(*phi)
+    K2 = _matmul_one(K, K)
+    R, V = _combine_one(a, K, b, K2), _combine_one(b, K, c, K2)
+    return _matrix(R, [row[0] for row in _matmul_one(V, [[r] for r in rho])])
+
+
+def _se3_log_one(T: Sequence[Sequence[float]]) -> torch.Tensor:
+    R, t = [row[:3] for row in T[:3]], [[row[3]] for row in T[:3]]
+    phi = _so3_log_one(R)
+    theta2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
+    if theta2 < _small(torch.float64):
+        d = 1.0 / 12 + theta2 / 720 + theta2**2 / 30240
+    else:
+        a, b, _ = _coeffs_one(theta2)
+        d = (1 - a / (2 * b)) / theta2
+    K = _hat_one(*phi)
+    V_inv = _combine_one(-0.5, K, d, _matmul_one(K, K))  # I - K/2 + D K^2 (-0.5 * k is exactly 0.5 * k negated)
+    return torch.tensor([row[0] for row in _matmul_one(V_inv, t)] + list(phi), dtype=torch.float64)
+
+
+def _se3_inverse_one(T: Sequence[Sequence[float]]) -> torch.Tensor:
+    R_t = [[T[j][i] for j in range(3)] for i in range(3)]
+    return _matrix(R_t, [-row[0] for row in _matmul_one(R_t, [[T[0][3]], [T[1][3]], [T[2][3]]])])
 
 
 def so3_exp(phi: torch.Tensor) -> torch.Tensor:
@@ -117,6 +215,8 @@ def so3_log(R: torch.Tensor) -> torch.Tensor:
 
     Goes through the quaternion: ``phi = 2 atan2(|v|, w) v / |v|`` is well conditioned at 0 and pi.
     """
+    if _one(R, (3, 3)):
+        return torch.tensor(_so3_log_one(R.tolist()), dtype=torch.float64)
     q = rotmat_to_quat_wxyz(R)
     w, v = q[..., 0], q[..., 1:]
     n2 = (v * v).sum(-1)
@@ -137,6 +237,8 @@ def se3_from_rt(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
 
 def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     """SE(3) exponential.  xi [..., 6] = [rho, phi] -> T [..., 4, 4]"""
+    if _one(xi, (6,)):
+        return _se3_exp_one(xi.tolist())
     rho, phi = xi[..., :3], xi[..., 3:]
     theta2 = (phi * phi).sum(-1)
     a, b, c = _rodrigues_coeffs(theta2, _small(xi.dtype))
@@ -150,6 +252,8 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
 
 def se3_log(T: torch.Tensor) -> torch.Tensor:
     """SE(3) logarithm.  T [..., 4, 4] -> xi [..., 6] = [rho, phi]"""
+    if _one(T, (4, 4)):
+        return _se3_log_one(T.tolist())
     R, t = T[..., :3, :3], T[..., :3, 3]
     phi = so3_log(R)
     theta2 = (phi * phi).sum(-1)
@@ -166,6 +270,8 @@ def se3_log(T: torch.Tensor) -> torch.Tensor:
 
 def se3_inverse(T: torch.Tensor) -> torch.Tensor:
     """Inverse of a rigid transform using R^T (exact, no matrix inversion).  [..., 4, 4] -> [..., 4, 4]"""
+    if _one(T, (4, 4)):
+        return _se3_inverse_one(T.tolist())
     R_t = T[..., :3, :3].transpose(-1, -2)
     return se3_from_rt(R_t, -(R_t @ T[..., :3, 3:4])[..., 0])
 
