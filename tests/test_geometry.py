@@ -451,4 +451,6 @@ def test_one_transform_in_float64_is_bitwise_the_batched_forms():
     xi = torch.full((6,), 0.1, dtype=torch.float64, requires_grad=True)
     se3_log(se3_exp(xi)).sum().backward()  # a gradient flows through the batched forms
     assert xi.grad is not None and torch.isfinite(xi.grad).all()
+    forward = torch.func.jacfwd(lambda v: se3_log(se3_exp(v)))(torch.full((6,), 0.1, dtype=torch.float64))
+    assert torch.allclose(forward, torch.eye(6, dtype=torch.float64), atol=1e-8)  # forward mode too: log(exp(v)) = v
     assert se3_exp(xi.detach().float()).dtype == torch.float32

@@ -16,6 +16,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 import torch
+import torch.autograd.forward_ad  # noqa: F401  (torch.autograd.forward_ad._current_level)
 
 # Below this squared angle the closed forms of B = (1 - cos t)/t^2, C = (t - sin t)/t^3 and
 # D = (1 - A/(2B))/t^2 lose digits to cancellation, so their Taylor series take over. The series
@@ -66,8 +67,13 @@ def _rodrigues_coeffs(theta2: torch.Tensor, small: float):
 # in the last bit: the results are bitwise those of the batched forms (tests/test_geometry.py).
 
 def _one(t: torch.Tensor, shape: tuple[int, ...]) -> bool:
-    """Whether ``t`` is one CPU float64 transform of ``shape`` that no gradient flows through."""
-    return t.dtype == torch.float64 and t.shape == shape and t.device.type == "cpu" and not t.requires_grad
+    """Whether ``t`` is one CPU float64 transform of ``shape`` that no gradient flows through: no autograd, and no
+    functorch transform (jacfwd, vmap) or forward-mode dual level active, whose tangents Python floats would drop."""
+    if t.dtype != torch.float64 or t.shape != shape or t.device.type != "cpu" or t.requires_grad:
+        return False
+    transforms_active = getattr(torch._C, "_are_functorch_transforms_active", None)
+    dual_level = getattr(torch.autograd.forward_ad, "_current_level", None)
+    return transforms_active is not None and not transforms_active() and dual_level == -1
 
 
 def _scalar(op: Callable[[torch.Tensor], torch.Tensor], x: float) -> float:
