@@ -490,9 +490,8 @@ class Frontend:
         prediction: torch.Tensor,  # [4, 4] float64 motion-model pose of ``frame``
     ) -> FrontendStart:
         """The start pose of ``frame``: PnP against ``reference`` when the features agree, else ``prediction``."""
-        if reference is None:
-            return self.start_from(frame, None, lambda: None, T_wc_reference, prediction)
-        return self.start_from(frame, reference.index, lambda: reference, T_wc_reference, prediction)
+        return self.start_from(frame, None if reference is None else reference.index, lambda: reference,
+                               T_wc_reference, prediction)
 
     def start_from(
         self,

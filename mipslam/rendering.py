@@ -150,9 +150,15 @@ def frustum_indices(
     T = T_cw.detach().to("cpu", torch.float64)
     view = tuple(T[:3, :3].reshape(-1).tolist()) + tuple(T[:3, 3].tolist()) + (
         intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
-    near, pad = 0.5 * RenderOptions.near_plane, FRUSTUM_MARGIN * max(intrinsics.width, intrinsics.height) + 1.0
+    near, pad = _frustum_limits(intrinsics)
     return library.frustum_rows(means, scales, view,
                                 (intrinsics.width, intrinsics.height, near, RenderOptions.k_sigma, pad))
+
+
+def _frustum_limits(intrinsics: Intrinsics) -> tuple[float, float]:
+    """The frustum test's near limit (metres, half the near plane) and the pad (px) its discs reach beyond the
+    image: FRUSTUM_MARGIN times the larger side, plus a pixel."""
+    return 0.5 * RenderOptions.near_plane, FRUSTUM_MARGIN * max(intrinsics.width, intrinsics.height) + 1.0
 
 
 @torch.no_grad()
@@ -164,10 +170,9 @@ def frustum_indices_reference(
 ) -> torch.Tensor:  # [M] int64, increasing
     """:func:`frustum_indices` in torch (any device and dtype): the readable reference the compiled test is
     checked against."""
-    near = 0.5 * RenderOptions.near_plane
+    near, pad = _frustum_limits(intrinsics)
     points_c = transform_points(T_cw.to(means), means.detach())  # [N, 3] camera frame
     uv, z = project(points_c, intrinsics.matrix(dtype=means.dtype, device=means.device), min_depth=near)  # [N, 2] px
-    pad = FRUSTUM_MARGIN * max(intrinsics.width, intrinsics.height) + 1.0
     reach = RenderOptions.k_sigma * scales.detach().amax(dim=-1) * max(intrinsics.fx, intrinsics.fy) / z.clamp_min(near)
     reach = reach + pad  # [N] px
     u, v = uv[:, 0], uv[:, 1]

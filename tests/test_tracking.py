@@ -15,9 +15,8 @@ from mipslam.gaussians import ActivatedGaussians
 from mipslam.geometry import se3_exp, se3_inverse, se3_log
 from mipslam.geometry.direct import DirectResult
 from mipslam.pipeline import run_slam
-from mipslam.render import RenderOptions
+from mipslam.render import RenderOptions, cpu as cpu_backend
 from mipslam.rendering import FRUSTUM_MARGIN, frustum_subset, render_view
-from mipslam.render import cpu as cpu_backend
 import mipslam.rendering as rendering_module
 import mipslam.tracking as tracking
 from mipslam.state import FrameRecord, SLAMState

@@ -66,14 +66,17 @@ def _rodrigues_coeffs(theta2: torch.Tensor, small: float):
 # batched forms reduce 3 and 4 elements), and take torch's own scalar sqrt, sin and cos, which differ from math's
 # in the last bit: the results are bitwise those of the batched forms (tests/test_geometry.py).
 
+# None where this torch does not say: the batched forms then run always
+_functorch_transforms_active = getattr(torch._C, "_are_functorch_transforms_active", None)
+
+
 def _one(t: torch.Tensor, shape: tuple[int, ...]) -> bool:
     """Whether ``t`` is one CPU float64 transform of ``shape`` that no gradient flows through: no autograd, and no
     functorch transform (jacfwd, vmap) or forward-mode dual level active, whose tangents Python floats would drop."""
     if t.dtype != torch.float64 or t.shape != shape or t.device.type != "cpu" or t.requires_grad:
         return False
-    transforms_active = getattr(torch._C, "_are_functorch_transforms_active", None)
-    dual_level = getattr(torch.autograd.forward_ad, "_current_level", None)
-    return transforms_active is not None and not transforms_active() and dual_level == -1
+    dual_level = getattr(torch.autograd.forward_ad, "_current_level", None)  # changes: read at each call
+    return _functorch_transforms_active is not None and not _functorch_transforms_active() and dual_level == -1
 
 
 def _scalar(op: Callable[[torch.Tensor], torch.Tensor], x: float) -> float:

@@ -218,7 +218,7 @@ class Library:
                    int(threads), _ptr(T), _ptr(stats))
         return T, int(stats[0]), int(stats[1]), bool(stats[2])
 
-    # --- the front-end's guided matching (feature_match.h) ---------------------------------------------
+    # --- the frustum test of tracking's and mapping's map subsets (raster_ext.cpp) ------------------------
     def frustum_rows(self, means: torch.Tensor, scales: torch.Tensor, view: tuple[float, ...],
                      limits: tuple[float, ...]) -> torch.Tensor:
         """Rows of the Gaussians a view can draw, increasing: means and scales [N, 3] float32 (CPU), ``view`` = 12
@@ -236,6 +236,7 @@ class Library:
                    _c_array(ctypes.c_double, limits), _ptr(rows), count.ctypes.data)
         return rows[: int(count[0])].clone()
 
+    # --- the front-end's guided matching (feature_match.h) ---------------------------------------------
     def guided_match(self, keypoints, projections, projection_ids, limit: float, query, train, ratio: float,
                      max_hamming: int):
         """Mutual, ratio-tested Hamming matches between keypoints [M, 2] and the reference points whose projections
